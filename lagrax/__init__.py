@@ -1,0 +1,13 @@
+import importlib.metadata
+
+from . import systems as systems
+from ._mechanics import (
+    accelerations as accelerations,
+    energy as energy,
+    mass_matrix as mass_matrix,
+    momenta as momenta,
+)
+from ._simulate import simulate as simulate, vector_field as vector_field
+
+
+__version__ = importlib.metadata.version("lagrax")

@@ -1,0 +1,246 @@
+r"""Lagrange's equations by automatic differentiation.
+
+With $M = \partial^2 L/\partial\dot q^2$ and $p = \partial L/\partial \dot q$,
+
+$$M\ddot q = \frac{\partial L}{\partial q}
+    - \frac{\partial^2 L}{\partial\dot q\,\partial q}\dot q
+    - \frac{\partial^2 L}{\partial\dot q\,\partial t} + Q.$$
+
+The two middle terms are the JVP of $p(q, \dot q, t)$ along $(\dot q, 0, 1)$; the columns
+of $M$ are its JVPs along $(0, e_i, 0)$. All $n + 1$ of them come out of one batched
+forward-over-reverse pass, with $\partial L/\partial q$ as the shared primal: no Hessian
+of $L$, no third-order tensor.
+"""
+
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+
+from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
+from ._misc import as_state, as_time, check_callable, describe, is_concrete
+
+
+def _check_lagrangian(L, q, qdot, t):
+    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
+    out = jax.eval_shape(L, q, qdot, t)
+    shape = getattr(out, "shape", None)
+    dtype = getattr(out, "dtype", None)
+    if shape != () or dtype is None or not jnp.issubdtype(dtype, jnp.floating):
+        got = (
+            f"shape {shape} and dtype {dtype}"
+            if shape is not None
+            else f"a {type(out).__name__}"
+        )
+        raise TypeError(
+            "`L` must return a real floating-point scalar (the Lagrangian); "
+            f"L(q, qdot, t) returned {got}. Sum or index the terms into a scalar."
+        )
+
+
+def _check_force(force, q, qdot, t):
+    check_callable(force, "force", "a function force(q, qdot, t) -> Q of shape (n,)")
+    out = jax.eval_shape(force, q, qdot, t)
+    if getattr(out, "shape", None) != q.shape or not jnp.issubdtype(
+        out.dtype, jnp.floating
+    ):
+        raise TypeError(
+            f"`force` must return a generalized force Q of shape {q.shape} (one entry "
+            f"per coordinate) and real floating dtype; force(q, qdot, t) returned "
+            f"{describe(out)}."
+        )
+
+
+def _prepare(L, q, qdot, t, force=None):
+    q, qdot = as_state(q, qdot)
+    t = as_time(t, "t", q.dtype)
+    _check_lagrangian(L, q, qdot, t)
+    if force is not None:
+        _check_force(force, q, qdot, t)
+    return q, qdot, t
+
+
+def _lagrange_terms(L, q, qdot, t):
+    """Returns `(M, rhs)` with `M q̈ = rhs` the unforced Lagrange equations."""
+    n = q.shape[0]
+    dtype = q.dtype
+    grad_L = jax.grad(L, argnums=(0, 1))
+
+    def along(dq, dqdot, dt):
+        (dLdq, _), (_, dp) = jax.jvp(grad_L, (q, qdot, t), (dq, dqdot, dt))
+        return dLdq, dp
+
+    dqs = jnp.concatenate([qdot[None], jnp.zeros((n, n), dtype)])
+    dqdots = jnp.concatenate([jnp.zeros((1, n), dtype), jnp.eye(n, dtype=dtype)])
+    dts = jnp.concatenate([jnp.ones((1,), dtype), jnp.zeros((n,), dtype)])
+    dLdq, dps = jax.vmap(along, out_axes=(None, 0))(dqs, dqdots, dts)
+    # dps[0] = (∂p/∂q) q̇ + ∂p/∂t; dps[1 + i] = ∂p/∂q̇_i, a column of the symmetric M.
+    return dps[1:], dLdq - dps[0]
+
+
+def _solve_definite(M, rhs):
+    r"""Solves `M x = rhs` for a definite `M`; returns `(x, ok)`.
+
+    `ok` is False when `M` is not definite (either sign) or is singular to working
+    precision (estimated reciprocal condition number below $n\varepsilon$). Small `n`
+    gets a closed form: it is both faster than a batched LAPACK call under `vmap` and
+    exact about the failure test.
+    """
+    n = M.shape[0]
+    eps = jnp.finfo(M.dtype).eps
+    sign = jnp.where(M[0, 0] < 0, -1.0, 1.0).astype(M.dtype)
+    A = sign * M
+    b = sign * rhs
+    if n == 1:
+        a = A[0, 0]
+        ok = a > 0
+        x = b / jnp.where(ok, a, 1.0)
+    elif n == 2:
+        a, d = A[0, 0], A[1, 1]
+        c = 0.5 * (A[0, 1] + A[1, 0])
+        det = a * d - c * c
+        ok = (a > 0) & (det > 2 * eps * a * d)
+        safe = jnp.where(ok, det, 1.0)
+        x = jnp.stack([d * b[0] - c * b[1], a * b[1] - c * b[0]]) / safe
+    else:
+        A = 0.5 * (A + A.T)
+        C = jnp.linalg.cholesky(A)
+        diag = jnp.diagonal(C)
+        # cond(A) >= (max diag C / min diag C)^2: a cheap certificate of singularity.
+        ok = jnp.all(jnp.isfinite(diag)) & (
+            jnp.min(diag) ** 2 > n * eps * jnp.max(diag) ** 2
+        )
+        C = jnp.where(ok, C, jnp.eye(n, dtype=M.dtype))
+        x = jsl.cho_solve((C, True), b)
+    ok = ok & jnp.all(jnp.isfinite(M))
+    return x, ok
+
+
+def _accelerations(L, q, qdot, t, force=None):
+    """Unchecked core of `accelerations`: NaN where the mass matrix is degenerate."""
+    M, rhs = _lagrange_terms(L, q, qdot, t)
+    if force is not None:
+        rhs = rhs + force(q, qdot, t)
+    qddot, ok = _solve_definite(M, rhs)
+    return jnp.where(ok, qddot, jnp.nan), (M, ok)
+
+
+def accelerations(
+    L: Lagrangian,
+    q: Coordinates,
+    qdot: Coordinates,
+    t: RealScalarLike = 0.0,
+    *,
+    force: GeneralizedForce | None = None,
+) -> Coordinates:
+    r"""Generalized accelerations $\ddot q$ from Lagrange's equations.
+
+    Solves
+
+    $$M\ddot q = \frac{\partial L}{\partial q}
+        - \frac{\partial^2 L}{\partial\dot q\,\partial q}\dot q
+        - \frac{\partial^2 L}{\partial\dot q\,\partial t} + Q,
+    \qquad M = \frac{\partial^2 L}{\partial\dot q^2},$$
+
+    for any twice-differentiable $L$: not necessarily quadratic in $\dot q$, with
+    velocity-dependent potentials and explicit time dependence (the $\partial t$ term is
+    kept, so a mass matrix that changes with $t$ is right).
+
+    **Arguments:**
+
+    - `L`: the Lagrangian, a function `L(q, qdot, t) -> scalar`. Parameters go in by
+        closure or `functools.partial`.
+    - `q`, `qdot`: generalized coordinates and velocities, 1-D float arrays of length n.
+    - `t`: time (scalar).
+    - `force`: optional non-conservative generalized force `force(q, qdot, t) -> Q`,
+        shape `(n,)`, as in $\frac{d}{dt}\partial_{\dot q} L - \partial_q L = Q$.
+
+    **Returns:**
+
+    $\ddot q$, shape `(n,)`. Under `jit`/`vmap` (traced inputs) a mass matrix that is
+    singular or indefinite gives NaN, which stops an adaptive solve with a failure
+    status (see `simulate`); it is never smoothed over with a pseudo-inverse.
+
+    **Raises:**
+
+    - `TypeError`: `L` or `force` is not callable or returns the wrong shape; `q` or
+        `qdot` is not a real float array.
+    - `ValueError`: `q`, `qdot` not 1-D or of different lengths; and, in an eager call,
+        a singular or indefinite mass matrix or non-finite accelerations (the message
+        names `q`, `qdot`, `t` and `M`).
+
+    **Example:**
+
+    ```python
+    L = lambda q, qdot, t: 0.5 * qdot[0] ** 2 + jnp.cos(q[0])  # pendulum, g = r = 1
+    lagrax.accelerations(L, jnp.array([0.5]), jnp.array([0.0]))  # -sin(0.5)
+    ```
+    """
+    q, qdot, t = _prepare(L, q, qdot, t, force)
+    qddot, (M, ok) = _accelerations(L, q, qdot, t, force)
+    if is_concrete(q, qdot, t, qddot):
+        where = f"q={np.asarray(q)}, qdot={np.asarray(qdot)}, t={float(t)}"
+        if not bool(ok):
+            raise ValueError(
+                "The mass matrix M = ∂²L/∂qdot² is singular or indefinite at "
+                f"{where}: M = {np.asarray(M).tolist()}. Lagrange's equations cannot "
+                "be solved for the accelerations there; if this is a coordinate "
+                "singularity, change coordinates (see `lagrax.reparametrize`)."
+            )
+        if not bool(jnp.all(jnp.isfinite(qddot))):
+            raise ValueError(
+                f"The accelerations are not finite at {where}: "
+                f"qddot = {np.asarray(qddot)}. Check L (and force) there."
+            )
+    return qddot
+
+
+def mass_matrix(
+    L: Lagrangian, q: Coordinates, qdot: Coordinates, t: RealScalarLike = 0.0
+) -> jax.Array:
+    r"""The generalized mass matrix $M = \partial^2 L / \partial\dot q^2$, shape `(n, n)`.
+
+    **Arguments:** `L(q, qdot, t) -> scalar`; `q`, `qdot` 1-D float arrays; time `t`.
+
+    **Returns:** $M$ (for $L = T - V$ with $T = \frac12\dot q^\top A(q)\dot q$, $M = A(q)$).
+
+    **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
+    """
+    q, qdot, t = _prepare(L, q, qdot, t)
+    return jax.jacfwd(jax.grad(L, argnums=1), argnums=1)(q, qdot, t)
+
+
+def momenta(
+    L: Lagrangian, q: Coordinates, qdot: Coordinates, t: RealScalarLike = 0.0
+) -> Coordinates:
+    r"""The generalized (canonical) momenta $p = \partial L / \partial\dot q$.
+
+    **Arguments:** `L(q, qdot, t) -> scalar`; `q`, `qdot` 1-D float arrays; time `t`.
+
+    **Returns:** $p$, shape `(n,)`. For a cyclic coordinate ($\partial L/\partial q_j =
+    0$) $p_j$ is conserved (Noether).
+
+    **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
+    """
+    q, qdot, t = _prepare(L, q, qdot, t)
+    return jax.grad(L, argnums=1)(q, qdot, t)
+
+
+def energy(
+    L: Lagrangian, q: Coordinates, qdot: Coordinates, t: RealScalarLike = 0.0
+) -> jax.Array:
+    r"""The Jacobi integral $h = \dot q \cdot p - L$, with $p = \partial L/\partial\dot q$.
+
+    $dh/dt = -\partial L/\partial t + Q\cdot\dot q$, so $h$ is conserved when $L$ has no
+    explicit time dependence and there is no force; for $L = T - V$ with $T$ quadratic in
+    $\dot q$ it is the total energy $T + V$.
+
+    **Arguments:** `L(q, qdot, t) -> scalar`; `q`, `qdot` 1-D float arrays; time `t`.
+
+    **Returns:** the scalar $h$.
+
+    **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
+    """
+    q, qdot, t = _prepare(L, q, qdot, t)
+    value, p = jax.value_and_grad(L, argnums=1)(q, qdot, t)
+    return jnp.dot(qdot, p) - value
