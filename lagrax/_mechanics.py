@@ -6,10 +6,10 @@ $$M\ddot q = \frac{\partial L}{\partial q}
     - \frac{\partial^2 L}{\partial\dot q\,\partial q}\dot q
     - \frac{\partial^2 L}{\partial\dot q\,\partial t} + Q.$$
 
-The two middle terms are the JVP of $p(q, \dot q, t)$ along $(\dot q, 0, 1)$; the columns
-of $M$ are its JVPs along $(0, e_i, 0)$. All $n + 1$ of them come out of one batched
-forward-over-reverse pass, with $\partial L/\partial q$ as the shared primal: no Hessian
-of $L$, no third-order tensor.
+The two middle terms are the JVP of $p(q, \dot q, t)$ along $(\dot q, 0, 1)$; the
+columns of $M$ are its JVPs along $(0, e_i, 0)$. All $n + 1$ of them come out of one
+batched forward-over-reverse pass, with $\partial L/\partial q$ as the shared primal:
+no Hessian of $L$, no third-order tensor.
 """
 
 import jax
@@ -198,11 +198,11 @@ def accelerations(
 def mass_matrix(
     L: Lagrangian, q: Coordinates, qdot: Coordinates, t: RealScalarLike = 0.0
 ) -> jax.Array:
-    r"""The generalized mass matrix $M = \partial^2 L / \partial\dot q^2$, shape `(n, n)`.
+    r"""The generalized mass matrix $M = \partial^2 L / \partial\dot q^2$, `(n, n)`.
 
     **Arguments:** `L(q, qdot, t) -> scalar`; `q`, `qdot` 1-D float arrays; time `t`.
 
-    **Returns:** $M$ (for $L = T - V$ with $T = \frac12\dot q^\top A(q)\dot q$, $M = A(q)$).
+    **Returns:** $M$ (for $L = T - V$, $T = \frac12\dot q^\top A(q)\dot q$: $M = A(q)$).
 
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
     """
@@ -229,11 +229,11 @@ def momenta(
 def energy(
     L: Lagrangian, q: Coordinates, qdot: Coordinates, t: RealScalarLike = 0.0
 ) -> jax.Array:
-    r"""The Jacobi integral $h = \dot q \cdot p - L$, with $p = \partial L/\partial\dot q$.
+    r"""The Jacobi integral $h = \dot q \cdot p - L$, $p = \partial L/\partial\dot q$.
 
-    $dh/dt = -\partial L/\partial t + Q\cdot\dot q$, so $h$ is conserved when $L$ has no
-    explicit time dependence and there is no force; for $L = T - V$ with $T$ quadratic in
-    $\dot q$ it is the total energy $T + V$.
+    $dh/dt = -\partial L/\partial t + Q\cdot\dot q$, so $h$ is conserved when $L$ has
+    no explicit time dependence and there is no force; for $L = T - V$ with $T$
+    quadratic in $\dot q$ it is the total energy $T + V$.
 
     **Arguments:** `L(q, qdot, t) -> scalar`; `q`, `qdot` 1-D float arrays; time `t`.
 
