@@ -40,10 +40,10 @@ def vector_field(
 
     `f(t, y, args) -> (qdot, qddot)` with `y = (q, qdot)`; `args` is ignored
     (parameters go in by closure). Where the mass matrix is singular or indefinite
-    $\ddot q$ is NaN, which an adaptive diffrax solve rejects, so the step size collapses
-    and the solve stops with `dt_min_reached` (as `simulate` sets it up) instead of
-    integrating garbage. Inputs are not checked here, on the hot path: `simulate` checks
-    them once.
+    $\ddot q$ is NaN, which an adaptive diffrax solve rejects, so the step size
+    collapses and the solve stops with `dt_min_reached` (as `simulate` sets it up)
+    instead of integrating garbage. Inputs are not checked here, on the hot path:
+    `simulate` checks them once.
 
     **Example:**
 
@@ -74,8 +74,9 @@ def _check_tolerance(x, name: str, dtype):
         eps = float(jnp.finfo(dtype).eps)
         if name == "rtol" and value < eps:
             warnings.warn(
-                f"rtol={value:g} is below the machine epsilon of {jnp.dtype(dtype).name}"
-                f" ({eps:.2g}): the solve cannot deliver it. Enable float64 "
+                f"rtol={value:g} is below the machine epsilon of "
+                f"{jnp.dtype(dtype).name} ({eps:.2g}): the solve cannot deliver it. "
+                "Enable float64 "
                 "(jax.config.update('jax_enable_x64', True)) or loosen rtol.",
                 stacklevel=3,
             )
@@ -86,9 +87,9 @@ def default_controller(rtol, atol, t0, t1, dtype):
     """A PID controller whose step size may not collapse below a few ulps of time.
 
     A singular mass matrix makes the vector field NaN; diffrax rejects such steps and
-    shrinks `dt` towards the singular instant forever (until `max_steps`, after burning
-    all of them). Steps below ~64 ulps of the time scale carry no information, so we stop
-    there with `RESULTS.dt_min_reached`: a fast, honest failure.
+    shrinks `dt` towards the singular instant forever (until `max_steps`, after
+    burning all of them). Steps below ~64 ulps of the time scale carry no information,
+    so we stop there with `RESULTS.dt_min_reached`: a fast, honest failure.
     """
     eps = jnp.finfo(dtype).eps
     scale = jnp.maximum(jnp.maximum(jnp.abs(t0), jnp.abs(t1)), jnp.abs(t1 - t0))
@@ -134,8 +135,8 @@ def simulate(
 
     Solves $\frac{d}{dt}(q, \dot q) = (\dot q, \ddot q)$ with $\ddot q$ from
     `lagrax.accelerations` using `diffrax.diffeqsolve`. Works under `jit` and `vmap`
-    (over `q0`, `qdot0`, times, tolerances); times and tolerances are arrays, so changing
-    them does not recompile. $t_1 < t_0$ integrates backwards in time.
+    (over `q0`, `qdot0`, times, tolerances); times and tolerances are arrays, so
+    changing them does not recompile. $t_1 < t_0$ integrates backwards in time.
 
     **Arguments:**
 
@@ -146,7 +147,7 @@ def simulate(
     - `solver`: any diffrax solver (default `Tsit5()`).
     - `saveat`: a `diffrax.SaveAt` (default: the state at `t1` only).
     - `rtol`, `atol`: tolerances of the default PID step-size controller.
-    - `dt0`: initial step (default: chosen by diffrax); required for a fixed-step solver.
+    - `dt0`: initial step (default: chosen by diffrax); required for fixed-step solvers.
     - `max_steps`: the most steps before the solve stops with `max_steps_reached`.
     - `throw`: raise if the solve fails. With `throw=False` the outcome is in
         `Solution.result`, per lane under `vmap`.
@@ -156,10 +157,11 @@ def simulate(
 
     **Returns:**
 
-    A `diffrax.Solution` with `ys = (qs, qdots)`. How failures show in `result`: a mass
-    matrix that becomes singular or indefinite along the way (a coordinate singularity,
-    say) gives `dt_min_reached` with an adaptive solver and `nonfinite` with a fixed-step
-    one; too many steps gives `max_steps_reached`. Never a success with NaN states.
+    A `diffrax.Solution` with `ys = (qs, qdots)`. How failures show in `result`: a
+    mass matrix that becomes singular or indefinite along the way (a coordinate
+    singularity, say) gives `dt_min_reached` with an adaptive solver and `nonfinite`
+    with a fixed-step one; too many steps gives `max_steps_reached`. Never a success
+    with NaN states.
 
     **Raises:**
 

@@ -1,7 +1,8 @@
 r"""The simple pendulum: mass $m$ on a massless rod of length $r$ under gravity $g$.
 
 One coordinate, $\theta$ from the downward vertical:
-$L = \frac12 m r^2\dot\theta^2 + m g r\cos\theta$, so $\ddot\theta + (g/r)\sin\theta = 0$.
+$L = \frac12 m r^2\dot\theta^2 + m g r\cos\theta$, so
+$\ddot\theta + (g/r)\sin\theta = 0$.
 Released from rest at amplitude $\theta_0$ its period is
 $T = 2\pi\sqrt{r/g}\,/\,\mathrm{AGM}(1, \cos(\theta_0/2))$.
 """
@@ -11,7 +12,7 @@ import jax.numpy as jnp
 
 
 def lagrangian(*, m=1.0, r=1.0, g=1.0):
-    r"""$L(q, \dot q, t) = \frac12 m r^2\dot\theta^2 + m g r\cos\theta$, $q = (\theta,)$."""
+    r"""$L = \frac12 m r^2\dot\theta^2 + m g r\cos\theta$ with $q = (\theta,)$."""
 
     def L(q, qdot, t):
         return 0.5 * m * r**2 * qdot[0] ** 2 + m * g * r * jnp.cos(q[0])

@@ -24,5 +24,5 @@ def lagrangian(potential: Callable, *, m=1.0):
 
 
 def acceleration(x, force_x, *, m=1.0):
-    r"""Newton's $\ddot x = F_x / m$ with $F_x = -V'(x)$ written by hand as `force_x(x)`."""
+    r"""Newton's $\ddot x = F_x / m$, with $F_x = -V'(x)$ given by hand as `force_x`."""
     return jnp.asarray(force_x(x)) / m
