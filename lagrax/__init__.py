@@ -8,6 +8,7 @@ from ._mechanics import (
     momenta as momenta,
 )
 from ._simulate import simulate as simulate, vector_field as vector_field
+from ._transform import reparametrize as reparametrize
 
 
 __version__ = importlib.metadata.version("lagrax")
