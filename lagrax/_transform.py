@@ -40,7 +40,7 @@ def _check_phi(phi, u, t):
 def reparametrize(
     L: Lagrangian, phi: Callable[[Coordinates, RealScalarLike], Coordinates]
 ) -> Lagrangian:
-    r"""The same system in new coordinates $u$, related to the old ones by $q = \varphi(u, t)$.
+    r"""The same system in new coordinates $u$, where $q = \varphi(u, t)$.
 
     $$L'(u, \dot u, t) = L\big(\varphi(u, t),\;
         \tfrac{\partial\varphi}{\partial u}\dot u + \tfrac{\partial\varphi}{\partial t},
@@ -49,10 +49,11 @@ def reparametrize(
     Lagrange's equations are covariant under such point transformations: a trajectory
     $u(t)$ of $L'$ maps to the trajectory $q(t) = \varphi(u(t), t)$ of $L$ wherever
     $\partial\varphi/\partial u$ is invertible. The use is to leave a coordinate
-    singularity behind: a mass matrix of $L$ that vanishes at some $q$ can be regular in
-    $u$ (the cycloid at its cusp below). The velocity $\dot q$ is one forward-mode JVP of
-    $\varphi$ along $(\dot u, 1)$, so the time dependence of $\varphi$ (a rotating or
-    accelerating frame) is included at no extra cost and no Jacobian is formed.
+    singularity behind: a mass matrix of $L$ that vanishes at some $q$ can be regular
+    in $u$ (the cycloid at its cusp below). The velocity $\dot q$ is one forward-mode
+    JVP of $\varphi$ along $(\dot u, 1)$, so the time dependence of $\varphi$ (a
+    rotating or accelerating frame) is included at no extra cost and no Jacobian is
+    formed.
 
     **Arguments:**
 
