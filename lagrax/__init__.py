@@ -9,6 +9,10 @@ from ._mechanics import (
 )
 from ._simulate import simulate as simulate, vector_field as vector_field
 from ._transform import reparametrize as reparametrize
+from ._variational import (
+    LagrangianTerm as LagrangianTerm,
+    VariationalMidpoint as VariationalMidpoint,
+)
 
 
 __version__ = importlib.metadata.version("lagrax")
