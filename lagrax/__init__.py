@@ -7,6 +7,13 @@ from ._mechanics import (
     mass_matrix as mass_matrix,
     momenta as momenta,
 )
+from ._particles import (
+    check_embedding as check_embedding,
+    degrees_of_freedom as degrees_of_freedom,
+    dissipation_force as dissipation_force,
+    generalized_force as generalized_force,
+    particle_lagrangian as particle_lagrangian,
+)
 from ._simulate import simulate as simulate, vector_field as vector_field
 from ._transform import reparametrize as reparametrize
 from ._variational import (

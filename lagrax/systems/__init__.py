@@ -5,5 +5,16 @@ keywords and returning a plain `L(q, qdot, t)`, its hand-derived equation of mot
 exact references (periods) where they exist.
 """
 
-from . import cycloid as cycloid, pendulum as pendulum, rectilinear as rectilinear
+from . import (
+    charged_particle as charged_particle,
+    cycloid as cycloid,
+    damped_pendulum as damped_pendulum,
+    double_pendulum as double_pendulum,
+    driven_pendulum as driven_pendulum,
+    pendulum as pendulum,
+    rectilinear as rectilinear,
+    rotating_hoop as rotating_hoop,
+    sphere as sphere,
+    spherical_pendulum as spherical_pendulum,
+)
 from .pendulum import pendulum_period as pendulum_period
