@@ -1,0 +1,725 @@
+r"""Periods of oscillation by integration to the turning points, one or many at once.
+
+A one-degree-of-freedom system released from rest at $q_0$ moves until its velocity
+vanishes again at the next turning point $q_1$, then comes back. The period is the time
+to return to $q_0$:
+
+$$T = t(q_0 \to q_1) + t(q_1 \to q_0).$$
+
+When $L$ is even in $\dot q$ and has no explicit time dependence (every natural system
+$L = \frac12 m(q)\dot q^2 - V(q)$, symmetric potential or not) the return leg is the
+time-reversed outgoing leg, so $T = 2\,t(q_0 \to q_1)$: half the work. Nothing here
+assumes a centre of oscillation; the turning points are found wherever they are.
+
+Numerical choices (each one a trap measured in DESIGN.md):
+
+- Each lane is integrated in its own units, $x = q/|q_0|$ and $s = t/\tau$ with
+  $\tau = \sqrt{|q_0| / |\ddot q(q_0)|}$, so that `rtol`/`atol` mean the same thing at
+  an amplitude of $10^{-3}$ as at $3$ (small amplitudes keep their relative accuracy).
+- The turning point is detected by a sign change of $\sigma\dot q$ ($\sigma$ the sign of
+  the acceleration at the start of the leg) with a *direction*, so that the exact zero
+  at release does not fire the event.
+- It is located without a root finder on the dense output: from the state at the end of
+  the step that crossed it, the solve switches its independent variable to $\dot q$
+  (Hénon's trick) and integrates $dt/d\dot q = 1/\ddot q$, $dq/d\dot q = \dot q/\ddot q$
+  from $\dot q(t_e)$ to exactly $0$ with the same solver and tolerances: a Newton step
+  made exact, with no iteration that can fail to converge and no interpolation error.
+- A lane whose energy $h = \dot q\,\partial L/\partial\dot q - L$ at the turning point
+  differs from its value at release by more than `energy_tol` (relative to the work
+  scale $|M\ddot q|\,|q_0|$ at release) is a failure, whatever the solver said: a
+  solve through a coordinate singularity can "succeed" with a garbage trajectory.
+"""
+
+import functools
+import math
+import warnings
+from collections.abc import Callable, Sequence
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec as P
+from jaxtyping import Array, Float, Int
+
+from ._custom_types import Lagrangian, RealScalarLike
+from ._mechanics import _accelerations, _check_lagrangian
+from ._misc import as_real_array, check_callable, is_concrete
+
+
+# --------------------------------------------------------------------------- statuses
+
+SUCCESS = 0
+NOT_OSCILLATING = 1
+MAX_STEPS = 2
+SINGULAR_MASS = 3
+ROOT_FIND_FAILED = 4
+ENERGY_DRIFT = 5
+SOLVER_FAILED = 6
+NONFINITE_INPUT = 7
+
+_STATUS = {
+    SUCCESS: ("success", "success"),
+    NOT_OSCILLATING: (
+        "not_oscillating",
+        "does not oscillate: released at an equilibrium (zero acceleration), or no "
+        "turning point before t_max, or the coordinate ran away (|q| > 1e6 |q0|)",
+    ),
+    MAX_STEPS: (
+        "max_steps",
+        "max_steps reached before the next turning point: raise max_steps or loosen "
+        "the tolerances; thousands of steps for one swing usually mean a coordinate "
+        "singularity on the path (e.g. the cycloid's cusp in θ; reparametrize)",
+    ),
+    SINGULAR_MASS: (
+        "singular_mass",
+        "singular or indefinite mass matrix ∂²L/∂q̇² (at the release point or where "
+        "the solve stopped): a coordinate singularity; change coordinates with "
+        "lagrax.reparametrize",
+    ),
+    ROOT_FIND_FAILED: (
+        "root_find_failed",
+        "turning point not located: the refinement to q̇ = 0 did not converge (zero "
+        "or non-finite acceleration at the turning point)",
+    ),
+    ENERGY_DRIFT: (
+        "energy_drift",
+        "energy drift beyond energy_tol between release and turning point: the "
+        "trajectory is not trustworthy (tighten the tolerances, or a coordinate "
+        "singularity was crossed)",
+    ),
+    SOLVER_FAILED: (
+        "solver_failed",
+        "the ODE solver failed (step size collapsed or non-finite state) away from "
+        "any detectable singularity of the mass matrix",
+    ),
+    NONFINITE_INPUT: ("nonfinite_input", "the release point q0 is not finite"),
+}
+
+#: Status codes of `sweep_periods` and `period`: `{code: (name, message)}`.
+STATUS_CODES = {code: name for code, (name, _) in _STATUS.items()}
+
+
+def status_message(code) -> str:
+    r"""The meaning of a period status code, as one line of text.
+
+    | code | name | meaning |
+    | --- | --- | --- |
+    | 0 | `success` | the period is trustworthy to about the tolerances |
+    | 1 | `not_oscillating` | released at an equilibrium, no turning point before `t_max`, or the coordinate ran away |
+    | 2 | `max_steps` | `max_steps` reached before the next turning point |
+    | 3 | `singular_mass` | mass matrix singular/indefinite at release or where the solve stopped |
+    | 4 | `root_find_failed` | the turning point could not be located exactly |
+    | 5 | `energy_drift` | energy not conserved to `energy_tol`: the trajectory is garbage |
+    | 6 | `solver_failed` | other solver failure (collapsed step size, non-finite state) |
+    | 7 | `nonfinite_input` | `q0` is NaN or infinite |
+
+    **Arguments:** `code`: an int (or integer scalar array).
+
+    **Returns:** the message, e.g. `"success"`.
+
+    **Raises:** `ValueError` for an unknown code.
+    """  # noqa: E501
+    try:
+        key = int(code)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"`code` must be an integer status code; got {code!r}.") from e
+    if key not in _STATUS:
+        raise ValueError(
+            f"`code` must be one of the status codes {sorted(_STATUS)}; got {key}."
+        )
+    return _STATUS[key][1]
+
+
+# ------------------------------------------------------------------ one lane, traced
+
+_ESCAPE = 1e6  # |q| beyond 1e6 |q0| means the motion is not a bounded oscillation
+
+
+def _energy(L, q, qdot, t):
+    value, p = jax.value_and_grad(L, argnums=1)(q, qdot, t)
+    return jnp.dot(qdot, p) - value
+
+
+class _Lane(eqx.Module):
+    """Outputs of one lane (stacked over lanes under vmap)."""
+
+    period: Array
+    status: Array
+    steps: Array  # steps of every batched loop of the lane, shape (n_loops,)
+
+
+_METHODS = {"half": 2, "full": 1, "quarter": 4}
+_REFINE_SUBSTEPS = 4
+
+
+def _controller(rtol, atol, dtype):
+    # In the lane's own units a step below ~1000 ulps of 1 carries no information:
+    # a NaN vector field (singular mass matrix) stops fast with dt_min_reached.
+    dtmin = 1024 * jnp.finfo(dtype).eps
+    return dfx.PIDController(rtol=rtol, atol=atol, dtmin=dtmin, force_dtmin=False)
+
+
+def _refine(solver, field, g, s, x, v, rtol, atol):
+    r"""Hénon's trick: integrate from the event value $w_e = g(s, x, v)$ to $w = 0$
+    with $w$ as the independent variable, $d(s, x, v)/dw = (1, \dot x, \ddot x)/\dot g$,
+    in a fixed number of steps of `solver`. Returns the state at $w = 0$ and the largest
+    scaled error estimate of those steps (above 1: not to tolerance)."""
+    w0 = g(s, x, v)
+    dtype = w0.dtype
+
+    def henon(w, y, args):
+        s, x, v = y
+        xdot, vdot = field(s, (x, v), None)
+        _, gdot = jax.jvp(g, (s, x, v), (jnp.ones((), dtype), xdot, vdot))
+        return 1 / gdot, xdot / gdot, vdot / gdot
+
+    term = dfx.ODETerm(henon)
+    dw = -w0 / _REFINE_SUBSTEPS
+    y = (s, x, v)
+    state = solver.init(term, w0, w0 + dw, y, None)
+
+    def body(i, carry):
+        y, state, worst = carry
+        wa = w0 + i * dw
+        wb = jnp.where(i == _REFINE_SUBSTEPS - 1, 0.0, wa + dw)
+        y1, err, _, state, _ = solver.step(term, wa, wb, y, None, state, False)
+        scaled = [
+            jnp.abs(e) / (atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)))
+            for e, a, b in zip(err, y, y1)
+        ]
+        worst = jnp.maximum(worst, jnp.max(jnp.stack(scaled[1:])))
+        return y1, state, worst
+
+    y, _, worst = jax.lax.fori_loop(
+        0, _REFINE_SUBSTEPS, body, (y, state, jnp.zeros((), dtype))
+    )
+    return y, worst
+
+
+def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
+    r"""Period of one release point `q0` (a scalar). Pure, traceable, vmappable."""
+    dtype = q0.dtype
+    eps = jnp.finfo(dtype).eps
+    zero = jnp.zeros((), dtype)
+    finite_q0 = jnp.isfinite(q0)
+    q0 = jnp.where(finite_q0, q0, 1.0)
+    a0, (M0, ok0) = _accelerations(L, q0[None], zero[None], zero)
+    a0, M0 = a0[0], M0[0, 0]
+    start_ok = ok0 & jnp.isfinite(a0)
+    moving = a0 != 0
+    valid = finite_q0 & start_ok & moving
+    # The lane's own units: lengths |q0| (1 if q0 = 0), times sqrt(|q0| / |q̈0|); and
+    # the state is the displacement from the release point, x = (q - q0)/|q0|, so the
+    # error control is relative to how far the motion has gone (near a release close to
+    # an unstable equilibrium, errors relative to |q0| would swamp the slow departure).
+    Qs = jnp.where(q0 != 0, jnp.abs(q0), 1.0)
+    a0s = jnp.where(valid, a0, -1.0)
+    tau = jnp.sqrt(Qs / jnp.abs(a0s))
+    Vs = Qs / tau
+    As = Qs / tau**2
+    s_end = jnp.asarray(1e6, dtype) if t_max is None else t_max / tau
+    s_end = jnp.where(valid, s_end, 0.0)
+    sigma = jnp.sign(a0s)
+
+    def accel(s, x, v):
+        qddot, _ = _accelerations(L, (q0 + Qs * x)[None], (Vs * v)[None], tau * s)
+        return qddot[0] / As
+
+    def field(s, y, args):
+        x, v = y
+        return v, accel(s, x, v)
+
+    def leg(s0, x_start, g):
+        """From rest at x_start, time s0, until g(s, x, v) goes from + to <= 0."""
+        event = dfx.Event(
+            (
+                lambda s, y, args, **kw: g(s, *y),
+                lambda s, y, args, **kw: jnp.abs(y[0]) > _ESCAPE,
+            ),
+            direction=(False, None),
+        )
+        sol = dfx.diffeqsolve(
+            dfx.ODETerm(field),
+            solver,
+            s0,
+            jnp.maximum(s_end, s0),
+            None,
+            (x_start, zero),
+            stepsize_controller=_controller(rtol, atol, dtype),
+            max_steps=max_steps,
+            event=event,
+            throw=False,
+        )
+        s_e, x_e, v_e = sol.ts[-1], sol.ys[0][-1], sol.ys[1][-1]
+        occurred = sol.result == dfx.RESULTS.event_occurred
+        hit = occurred & sol.event_mask[0]
+        escaped = occurred & sol.event_mask[1]
+        ran_out = sol.result == dfx.RESULTS.successful  # reached s_end, no event
+        good = hit & jnp.isfinite(s_e) & jnp.isfinite(x_e) & jnp.isfinite(v_e)
+        # Where the event did not fire, refine a harmless copy of the start instead.
+        s_e, x_e, v_e = (
+            jnp.where(good, a, b) for a, b in ((s_e, s0), (x_e, x_start), (v_e, zero))
+        )
+        (s1, x1, v1), worst = _refine(solver, field, g, s_e, x_e, v_e, rtol, atol)
+        a1 = accel(s1, x1, v1)
+        refined = (
+            jnp.isfinite(s1)
+            & jnp.isfinite(x1)
+            & jnp.isfinite(v1)
+            & jnp.isfinite(a1)
+            & (worst <= 10.0)
+        )
+        status = jnp.select(
+            [
+                good & refined,
+                good,
+                escaped | ran_out,
+                sol.result == dfx.RESULTS.max_steps_reached,
+            ],
+            [SUCCESS, ROOT_FIND_FAILED, NOT_OSCILLATING, MAX_STEPS],
+            SOLVER_FAILED,
+        )
+        stop = (
+            jnp.where(good, s1, sol.ts[-1]),
+            jnp.where(good, x1, sol.ys[0][-1]),
+            jnp.where(good, v1, sol.ys[1][-1]),
+        )
+        steps = jnp.stack([sol.stats["num_steps"], jnp.asarray(_REFINE_SUBSTEPS)])
+        return stop, a1, status, steps
+
+    if method == "quarter":
+        # Point of maximum speed, q̈ = 0 (the bottom of a mirror-symmetric well).
+        (s_q, x_q, v_q), _, status, steps = leg(
+            zero, zero, lambda s, x, v: sigma * accel(s, x, v)
+        )
+        s_total = 4 * s_q
+        end = (s_q, x_q, v_q)
+    else:
+        end, a1, status, steps = leg(zero, zero, lambda s, x, v: sigma * v)
+        s_total = 2 * end[0]
+        if method == "full":
+            ok1 = status == SUCCESS
+            sigma2 = jnp.where(ok1, jnp.sign(a1), -sigma)
+            end, _, status2, steps2 = leg(
+                jnp.where(ok1, end[0], zero),
+                jnp.where(ok1, end[1], zero),
+                lambda s, x, v: sigma2 * v,
+            )
+            status = jnp.where(ok1, status2, status)
+            s_total = end[0]
+            steps = jnp.concatenate([steps, steps2])
+    s_last, x_end, v_end = end
+
+    # Energy check where the solve stopped (normally a turning point).
+    q_end, qdot_end, t_end = q0 + Qs * x_end, Vs * v_end, tau * s_last
+    h0 = _energy(L, q0[None], zero[None], zero)
+    h1 = _energy(L, q_end[None], qdot_end[None], t_end)
+    scale = jnp.abs(M0 * a0s) * Qs
+    drift = jnp.abs(h1 - h0)
+    tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
+    allowed = tol * scale + 1024 * eps * (jnp.abs(h0) + jnp.abs(h1))
+    drifted = ~(drift <= allowed)  # NaN energies count as drift
+    # A singular or indefinite mass matrix where the solve stopped?
+    _, (_, ok_end) = _accelerations(L, q_end[None], qdot_end[None], t_end)
+    status = jnp.where(
+        (status == SUCCESS) & drifted,
+        ENERGY_DRIFT,
+        jnp.where(
+            (status != SUCCESS) & (status != NOT_OSCILLATING) & ~ok_end,
+            SINGULAR_MASS,
+            jnp.where(
+                (status == NOT_OSCILLATING) & drifted & jnp.isfinite(h1),
+                ENERGY_DRIFT,
+                status,
+            ),
+        ),
+    )
+    status = jnp.select(
+        [~finite_q0, ~start_ok, ~moving],
+        [NONFINITE_INPUT, SINGULAR_MASS, NOT_OSCILLATING],
+        status,
+    )
+    T = jnp.where(status == SUCCESS, tau * s_total, jnp.nan)
+    return _Lane(T, status.astype(jnp.int32), steps.astype(jnp.int32))
+
+
+def _check_method(method):
+    if method not in _METHODS:
+        raise ValueError(f"`method` must be one of {sorted(_METHODS)}; got {method!r}.")
+    return method
+
+
+# ------------------------------------------------------------------------ checking
+
+
+def _check_solver(solver):
+    if not isinstance(solver, dfx.AbstractAdaptiveSolver):
+        raise TypeError(
+            "`solver` must be an adaptive diffrax solver (the turning point is found "
+            f"with adaptive steps), e.g. diffrax.Dopri8(); got {type(solver).__name__}."
+        )
+
+
+def _check_positive_int(x, name):
+    if isinstance(x, bool) or not isinstance(x, int | np.integer) or x <= 0:
+        raise ValueError(f"`{name}` must be a positive int; got {x!r}.")
+    return int(x)
+
+
+def _check_scalar(x, name, dtype, *, optional=False):
+    if x is None and optional:
+        return None
+    x = as_real_array(x, name) if not isinstance(x, int | float) else jnp.asarray(x)
+    if jnp.ndim(x) != 0:
+        raise ValueError(f"`{name}` must be a scalar; got shape {jnp.shape(x)}.")
+    if is_concrete(x):
+        value = float(x)
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"`{name}` must be a positive finite number; got {value}.")
+    return jnp.asarray(x, dtype)
+
+
+def _check_tolerances(rtol, atol, t_max, energy_tol, dtype):
+    rtol = _check_scalar(rtol, "rtol", dtype)
+    atol = _check_scalar(atol, "atol", dtype)
+    eps = float(jnp.finfo(dtype).eps)
+    if is_concrete(rtol) and float(rtol) < eps:
+        warnings.warn(
+            f"rtol={float(rtol):g} is below the machine epsilon of "
+            f"{jnp.dtype(dtype).name} ({eps:.2g}): the periods cannot reach it. Enable "
+            "float64 (jax.config.update('jax_enable_x64', True)) or loosen rtol.",
+            stacklevel=3,
+        )
+    t_max = _check_scalar(t_max, "t_max", dtype, optional=True)
+    energy_tol = _check_scalar(energy_tol, "energy_tol", dtype, optional=True)
+    return rtol, atol, t_max, energy_tol
+
+
+def _check_L(L, dtype):
+    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
+    z = jnp.zeros((1,), dtype)
+    _check_lagrangian(L, z, z, jnp.zeros((), dtype))
+
+
+# ---------------------------------------------------------------------------- period
+
+
+def period(
+    L: Lagrangian,
+    q0: RealScalarLike,
+    *,
+    solver: dfx.AbstractAdaptiveSolver = dfx.Dopri8(),
+    rtol: RealScalarLike = 1e-13,
+    atol: RealScalarLike = 1e-13,
+    max_steps: int = 4096,
+    t_max: RealScalarLike | None = None,
+    energy_tol: RealScalarLike | None = None,
+    method: str = "half",
+    throw: bool = True,
+) -> Array:
+    r"""The period of a one-degree-of-freedom oscillation released from rest at `q0`.
+
+    $$T = t(q_0 \to q_1) + t(q_1 \to q_0),$$
+
+    with $q_1$ the next turning point ($\dot q = 0$) after release, found wherever it is
+    (asymmetric potentials included: no centre of oscillation is assumed). `method`
+    says how much of the orbit is integrated:
+
+    - `"half"` (default): $T = 2\,t(q_0 \to q_1)$. Exact when $L$ is even in $\dot q$
+        and has no explicit time dependence (every $L = \frac12 m(q)\dot q^2 - V(q)$,
+        symmetric potential or not): the return leg is the outgoing one reversed.
+    - `"full"`: through $q_1$ and back to $q_0$: any autonomous one-coordinate $L$;
+        twice the work.
+    - `"quarter"`: $T = 4\,t(q_0 \to q_m)$, $q_m$ the point of maximum speed
+        ($\ddot q = 0$, found by event, not assumed). Exact only for a well that is
+        mirror-symmetric about $q_m$ (pendulum, cycloid); half the work of `"half"`,
+        and the only well-conditioned choice near a separatrix: past the bottom, one
+        rounding of $\dot q$ changes $T$ by $\sim 4\,\delta E/\delta^2$ for a release
+        $\delta$ below a hump (pendulum: ~1e-10 relative at $\pi - 10^{-3}$ in float64,
+        whatever the tolerances), which `"quarter"` never integrates through.
+
+    Plain JAX: works under `jit`, `vmap` and `grad` (with respect to `q0` and to any
+    parameter `L` closes over). For many amplitudes at once use `sweep_periods`.
+
+    **Arguments:**
+
+    - `L`: the Lagrangian `L(q, qdot, t) -> scalar` of one coordinate (`q` has shape
+        `(1,)`).
+    - `q0`: the release point (the amplitude, in the coordinate `L` is written in), a
+        scalar or shape `(1,)`.
+    - `solver`: an adaptive diffrax solver (default `Dopri8()`).
+    - `rtol`, `atol`: tolerances, in the lane's own units (lengths in $|q_0|$, times
+        in $\sqrt{|q_0|/|\ddot q(q_0)|}$): small amplitudes keep relative accuracy.
+    - `max_steps`: the most steps for one swing.
+    - `t_max`: give up (status `not_oscillating`) if no turning point by then; default
+        $10^6\sqrt{|q_0|/|\ddot q(q_0)|}$.
+    - `energy_tol`: the largest accepted energy drift between release and turning point,
+        relative to $|M\ddot q|\,|q_0|$ at release; default $\sqrt{\text{rtol}}$.
+    - `method`: `"half"`, `"full"` or `"quarter"`, see above.
+    - `throw`: raise on failure (under `jit`/`vmap` an equinox runtime error); with
+        `throw=False` a failure gives NaN.
+
+    **Returns:**
+
+    $T$, a scalar.
+
+    **Raises:**
+
+    - `TypeError`/`ValueError`: bad arguments (the message names the argument).
+    - `RuntimeError` (eager) or an equinox runtime error (traced), with the status
+        message (see `status_message`), when the period cannot be trusted.
+
+    **Example:**
+
+    ```python
+    L = lagrax.systems.pendulum.lagrangian()
+    lagrax.period(L, 1.0)  # 6.6986..., = pendulum_period(1.0)
+    ```
+    """
+    q0 = as_real_array(q0, "q0")
+    if q0.shape not in ((), (1,)):
+        raise ValueError(
+            "`q0` must be a scalar or shape (1,): `period` is for one degree of "
+            f"freedom; got shape {q0.shape}. For many amplitudes use sweep_periods."
+        )
+    q0 = q0.reshape(())
+    dtype = q0.dtype
+    _check_L(L, dtype)
+    _check_solver(solver)
+    max_steps = _check_positive_int(max_steps, "max_steps")
+    rtol, atol, t_max, energy_tol = _check_tolerances(
+        rtol, atol, t_max, energy_tol, dtype
+    )
+    out = _lane(
+        L,
+        q0,
+        rtol,
+        atol,
+        t_max,
+        energy_tol,
+        solver=solver,
+        max_steps=max_steps,
+        method=_check_method(method),
+    )
+    if throw:
+        if is_concrete(out.status):
+            code = int(out.status)
+            if code != SUCCESS:
+                raise RuntimeError(
+                    f"lagrax.period failed for q0={float(q0)!r}: status {code} "
+                    f"({STATUS_CODES[code]}): {status_message(code)}."
+                )
+        else:
+            out = eqx.error_if(
+                out,
+                out.status != SUCCESS,
+                "lagrax.period failed: use sweep_periods (or throw=False) to see the "
+                "status of each amplitude.",
+            )
+    return out.period
+
+
+# ---------------------------------------------------------------------------- sweep
+
+
+class SweepResult(eqx.Module):
+    r"""The outcome of `sweep_periods`, in the order of the input amplitudes.
+
+    **Fields:**
+
+    - `periods`: the periods, NaN where `status != 0`.
+    - `status`: int32 codes, 0 for success; `lagrax.status_message(code)` says what
+        the others mean.
+    - `num_steps`: solver steps (accepted and rejected) per amplitude, all solves of
+        the lane together.
+    - `lane_steps_useful`: the sum of `num_steps`, the work each lane needed.
+    - `lane_steps_executed`: the lane-steps the batched loops actually ran (a vmapped
+        adaptive loop steps every lane of a chunk until its slowest lane is done, and
+        pads the last chunk).
+    - `chunk_size`: lanes per chunk and device; `num_devices`: devices used.
+    """
+
+    periods: Float[Array, " n"]
+    status: Int[Array, " n"]
+    num_steps: Int[Array, " n"]
+    lane_steps_useful: Int[Array, ""]
+    lane_steps_executed: Int[Array, ""]
+    chunk_size: int = eqx.field(static=True)
+    num_devices: int = eqx.field(static=True)
+
+    @property
+    def useful_fraction(self) -> Array:
+        """Useful lane-steps over executed ones (1.0 = no lane ever waited)."""
+        return self.lane_steps_useful / jnp.maximum(self.lane_steps_executed, 1)
+
+    @property
+    def ok(self) -> Array:
+        """Boolean mask of the successful amplitudes."""
+        return self.status == SUCCESS
+
+    def messages(self) -> list[str]:
+        """`status_message` of each amplitude (a Python list; eager only)."""
+        return [status_message(c) for c in np.asarray(self.status)]
+
+
+@functools.lru_cache(maxsize=64)
+def _chunk_solver(L, solver, max_steps, method, has_t_max, has_etol, devices):
+    """The compiled chunk function for one static configuration (cached, so changing
+    amplitudes or tolerances never recompiles)."""
+
+    def lanes(q0, rtol, atol, t_max, energy_tol):
+        lane = functools.partial(
+            _lane,
+            L,
+            solver=solver,
+            max_steps=max_steps,
+            method=method,
+        )
+        out = jax.vmap(lane, in_axes=(0, None, None, None, None))(
+            q0, rtol, atol, t_max if has_t_max else None, energy_tol
+        )
+        # Every solve is its own batched loop: it runs max-over-lanes steps for all.
+        executed = jnp.sum(jnp.max(out.steps, axis=0)) * q0.shape[0]
+        return out.period, out.status, jnp.sum(out.steps, axis=1), executed[None]
+
+    if not has_etol:
+        inner = lanes
+        lanes = lambda q0, rtol, atol, t_max, energy_tol: inner(
+            q0, rtol, atol, t_max, None
+        )
+    if len(devices) == 1:
+        return jax.jit(lanes)
+    mesh = Mesh(np.array(devices), ("lanes",))
+    sharded = jax.shard_map(
+        lanes,
+        mesh=mesh,
+        in_specs=(P("lanes"), P(), P(), P(), P()),
+        out_specs=(P("lanes"), P("lanes"), P("lanes"), P("lanes")),
+        check_vma=False,
+    )
+    return jax.jit(sharded)
+
+
+def sweep_periods(
+    L: Lagrangian,
+    q0: Float[Array, " n"],
+    *,
+    solver: dfx.AbstractAdaptiveSolver = dfx.Dopri8(),
+    rtol: RealScalarLike = 1e-13,
+    atol: RealScalarLike = 1e-13,
+    max_steps: int = 4096,
+    t_max: RealScalarLike | None = None,
+    energy_tol: RealScalarLike | None = None,
+    method: str = "half",
+    chunk_size: int = 256,
+    sort: bool = True,
+    devices: Sequence[jax.Device] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> SweepResult:
+    r"""Periods of many release points at once: `period` over a batch, done fast.
+
+    Each lane computes $T = t(q_0\to q_1) + t(q_1 \to q_0)$ as in `period`. The batch is
+    sorted by $q_0$ and cut into chunks of `chunk_size` lanes per device, so that the
+    lanes of a chunk need about the same number of steps (a vmapped adaptive loop runs
+    every lane until the slowest is done: over 0.01–3.1 rad as one batch only 44 % of
+    lane-steps are useful, in sorted chunks about 90 %). Each chunk is one compiled,
+    `vmap`ped solve, sharded over `devices` with `jax.shard_map` (each device runs its
+    own loop). Amplitudes and tolerances are arrays: changing them never recompiles.
+
+    A failing lane is reported in `status` and never changes the others: their periods
+    are bit-for-bit those of a sweep without it. Differentiable with `jax.grad` (with
+    respect to `q0` and to parameters `L` closes over).
+
+    **Arguments:**
+
+    - `L`: the Lagrangian `L(q, qdot, t) -> scalar` of one coordinate.
+    - `q0`: release points, a 1-D float array.
+    - `solver`, `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in
+        `period` (the same for every lane).
+    - `chunk_size`: lanes per chunk and device (static: changing it compiles anew).
+    - `sort`: sort the release points before chunking (default True).
+    - `devices`: the devices to shard each chunk over (default: all of `jax.devices()`).
+    - `progress`: optional callback `progress(done, total)` after each chunk (eager
+        calls only).
+
+    **Returns:**
+
+    A `lagrax.SweepResult` with `periods`, `status`, `num_steps` in the input order and
+    the work statistics (`useful_fraction`).
+
+    **Raises:**
+
+    `TypeError`/`ValueError` on bad arguments, naming the argument.
+
+    **Example:**
+
+    ```python
+    L = lagrax.systems.pendulum.lagrangian()
+    res = lagrax.sweep_periods(L, jnp.linspace(0.01, 3.1, 4096))
+    res.periods, res.status, res.useful_fraction
+    ```
+    """
+    q0 = as_real_array(q0, "q0")
+    if q0.ndim != 1 or q0.shape[0] == 0:
+        raise ValueError(
+            "`q0` must be a non-empty 1-D array of release points (one per amplitude); "
+            f"got shape {q0.shape}."
+        )
+    dtype = q0.dtype
+    _check_L(L, dtype)
+    _check_solver(solver)
+    max_steps = _check_positive_int(max_steps, "max_steps")
+    chunk_size = _check_positive_int(chunk_size, "chunk_size")
+    rtol, atol, t_max, energy_tol = _check_tolerances(
+        rtol, atol, t_max, energy_tol, dtype
+    )
+    if devices is None:
+        devices = jax.devices()
+    devices = tuple(devices)
+    if len(devices) == 0 or not all(isinstance(d, jax.Device) for d in devices):
+        raise TypeError(
+            f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
+        )
+    if progress is not None:
+        check_callable(progress, "progress", "a function progress(done, total)")
+    run = _chunk_solver(
+        L,
+        solver,
+        max_steps,
+        _check_method(method),
+        t_max is not None,
+        energy_tol is not None,
+        devices,
+    )
+    n = q0.shape[0]
+    width = chunk_size * len(devices)
+    n_chunks = -(-n // width)
+    order = jnp.argsort(q0, stable=True) if sort else jnp.arange(n)
+    padded = jnp.concatenate([q0[order], jnp.full(n_chunks * width - n, q0[order][-1])])
+    t_max_arg = jnp.zeros((), dtype) if t_max is None else t_max
+    etol_arg = jnp.zeros((), dtype) if energy_tol is None else energy_tol
+    outs = []
+    for k in range(n_chunks):
+        chunk = padded[k * width : (k + 1) * width]
+        outs.append(run(chunk, rtol, atol, t_max_arg, etol_arg))
+        if progress is not None:
+            jax.block_until_ready(outs[-1])
+            progress(min((k + 1) * width, n), n)
+    periods, status, steps, executed = (jnp.concatenate(x) for x in zip(*outs))
+    inverse = jnp.zeros(n, jnp.int32).at[order].set(jnp.arange(n, dtype=jnp.int32))
+    periods, status, steps = (
+        periods[:n][inverse],
+        status[:n][inverse],
+        steps[:n][inverse],
+    )
+    return SweepResult(
+        periods=periods,
+        status=status,
+        num_steps=steps,
+        lane_steps_useful=jnp.sum(steps),
+        lane_steps_executed=jnp.sum(executed),
+        chunk_size=chunk_size,
+        num_devices=len(devices),
+    )
