@@ -14,6 +14,13 @@ from ._particles import (
     generalized_force as generalized_force,
     particle_lagrangian as particle_lagrangian,
 )
+from ._period import (
+    STATUS_CODES as STATUS_CODES,
+    SweepResult as SweepResult,
+    period as period,
+    status_message as status_message,
+    sweep_periods as sweep_periods,
+)
 from ._simulate import simulate as simulate, vector_field as vector_field
 from ._transform import reparametrize as reparametrize
 from ._variational import (
