@@ -21,6 +21,11 @@ from ._period import (
     status_message as status_message,
     sweep_periods as sweep_periods,
 )
+from ._quadrature import (
+    quadrature_period as quadrature_period,
+    quadrature_status_message as quadrature_status_message,
+    QuadratureResult as QuadratureResult,
+)
 from ._simulate import simulate as simulate, vector_field as vector_field
 from ._transform import reparametrize as reparametrize
 from ._variational import (

@@ -6,6 +6,7 @@ exact references (periods) where they exist.
 """
 
 from . import (
+    asymmetric_well as asymmetric_well,
     charged_particle as charged_particle,
     cycloid as cycloid,
     damped_pendulum as damped_pendulum,
