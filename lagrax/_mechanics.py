@@ -12,6 +12,7 @@ batched forward-over-reverse pass, with $\partial L/\partial q$ as the shared pr
 no Hessian of $L$, no third-order tensor.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
@@ -125,6 +126,10 @@ def _accelerations(L, q, qdot, t, force=None):
     return jnp.where(ok, qddot, jnp.nan), (M, ok)
 
 
+# Compiled once per (L, force, shapes): eager calls skip op-by-op dispatch.
+_accelerations_jit = eqx.filter_jit(_accelerations)
+
+
 def accelerations(
     L: Lagrangian,
     q: Coordinates,
@@ -177,7 +182,7 @@ def accelerations(
     ```
     """
     q, qdot, t = _prepare(L, q, qdot, t, force)
-    qddot, (M, ok) = _accelerations(L, q, qdot, t, force)
+    qddot, (M, ok) = _accelerations_jit(L, q, qdot, t, force)
     if is_concrete(q, qdot, t, qddot):
         where = f"q={np.asarray(q)}, qdot={np.asarray(qdot)}, t={float(t)}"
         if not bool(ok):

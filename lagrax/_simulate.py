@@ -54,13 +54,20 @@ def vector_field(
     check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
     if force is not None:
         check_callable(force, "force", "a function force(q, qdot, t) -> Q")
+    return _LagrangeField(L, force)
 
-    def f(t, y, args):
+
+class _LagrangeField(eqx.Module):
+    # A Module rather than a closure: two fields built from the same `L` compare equal,
+    # so `diffeqsolve`'s filter_jit cache is hit on every eager `simulate` call instead
+    # of recompiling (a fresh closure would hash differently each time).
+    L: Callable
+    force: Callable | None
+
+    def __call__(self, t, y, args):
         q, qdot = y
-        qddot, _ = _accelerations(L, q, qdot, t, force)
+        qddot, _ = _accelerations(self.L, q, qdot, t, self.force)
         return qdot, qddot
-
-    return f
 
 
 def _check_tolerance(x, name: str, dtype):

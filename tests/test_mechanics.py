@@ -1,0 +1,246 @@
+"""Autodiff equations of motion against hand derivations."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lagrax
+from lagrax.systems import cycloid, pendulum, rectilinear
+
+from .helpers import random_states
+
+
+def _acc(L, q, qdot, t=0.0, force=None):
+    return lagrax.accelerations(L, jnp.asarray(q), jnp.asarray(qdot), t, force=force)
+
+
+@pytest.mark.parametrize("m,r,g", [(1.0, 1.0, 1.0), (2.5, 0.3, 9.81), (0.1, 7.0, 1.6)])
+def test_pendulum_matches_seed(key, m, r, g):
+    L = pendulum.lagrangian(m=m, r=r, g=g)
+    q, qdot = random_states(key, 1, 50, scale=2.0)
+    got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(q, qdot)
+    want = pendulum.acceleration(q, r=r, g=g)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14 * g / r)
+
+
+@pytest.mark.parametrize("m,R,g", [(1.0, 1.0, 1.0), (3.0, 0.5, 9.81)])
+def test_cycloid_matches_seed(key, m, R, g):
+    # The seed's final form, 2Rθ̈ sin(θ/2) + Rθ̇² cos(θ/2) − g cos(θ/2) = 0, off the cusp.
+    L = cycloid.lagrangian(m=m, R=R, g=g)
+    kq, kv = jax.random.split(key)
+    theta = jax.random.uniform(kq, (50, 1), minval=0.05, maxval=2 * jnp.pi - 0.05)
+    thetadot = jax.random.normal(kv, (50, 1))
+    got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(theta, thetadot)
+    want = cycloid.acceleration(theta, thetadot, R=R, g=g)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    residual = (
+        2 * R * got * jnp.sin(theta / 2)
+        + R * thetadot**2 * jnp.cos(theta / 2)
+        - g * jnp.cos(theta / 2)
+    )
+    np.testing.assert_allclose(residual, 0.0, atol=1e-12 * (g + R))
+
+
+def test_cycloid_u_form_is_harmonic(key):
+    R, g = 0.7, 9.81
+    L = cycloid.lagrangian_u(R=R, g=g)
+    u, udot = random_states(key, 1, 20)
+    got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(u, udot)
+    np.testing.assert_allclose(got, -(g / (4 * R)) * u, rtol=1e-13)
+
+
+def test_rectilinear_recovers_newton(key):
+    def V(x):
+        return 0.25 * x**4 - 0.5 * x**2 + jnp.sin(3 * x)
+
+    def F(x):  # −V′(x) by hand
+        return -(x**3) + x - 3 * jnp.cos(3 * x)
+
+    m = 1.7
+    L = rectilinear.lagrangian(V, m=m)
+    q, qdot = random_states(key, 1, 40, scale=1.5)
+    got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(q, qdot)
+    np.testing.assert_allclose(got, rectilinear.acceleration(q, F, m=m), rtol=1e-12)
+
+
+def test_explicit_time_mass():
+    # L = ½ m(t) q̇² − ½ k q², m(t) = m0(1 + a t): m q̈ + ṁ q̇ = −k q.
+    m0, a, k = 1.3, 0.4, 2.0
+
+    def L(q, qdot, t):
+        return 0.5 * m0 * (1 + a * t) * qdot[0] ** 2 - 0.5 * k * q[0] ** 2
+
+    for q, qdot, t in [(0.3, -1.2, 0.0), (-0.7, 0.5, 2.5), (1.1, 2.0, 7.0)]:
+        got = _acc(L, [q], [qdot], t)
+        want = (-k * q - m0 * a * qdot) / (m0 * (1 + a * t))
+        np.testing.assert_allclose(got, [want], rtol=1e-13)
+
+
+def test_explicit_time_gauge_term():
+    # L = ½ q̇² + f(t) q q̇: the q̇ terms cancel and only ∂²L/∂q̇∂t survives: q̈ = −f′(t) q.
+    # A code that drops the ∂t term (as some peers do) gets q̈ = 0 here.
+    def L(q, qdot, t):
+        return 0.5 * qdot[0] ** 2 + jnp.sin(2 * t) * q[0] * qdot[0]
+
+    for q, qdot, t in [(0.3, -1.2, 0.1), (-0.7, 0.5, 2.5)]:
+        got = _acc(L, [q], [qdot], t)
+        np.testing.assert_allclose(got, [-2 * np.cos(2 * t) * q], rtol=1e-13)
+
+
+def test_relativistic_particle_not_quadratic(key):
+    # L = −mc²√(1 − v²/c²) − V(x) in 3-D: M = mγ(I + γ² v vᵀ/c²) and
+    # q̈ = (F − (F·v) v / c²) / (m γ), F = −∇V.
+    m, c = 1.5, 2.0
+
+    def V(x):
+        return 0.5 * jnp.dot(x, x) + 0.1 * x[0] * x[1] * x[2]
+
+    def L(q, qdot, t):
+        return -m * c**2 * jnp.sqrt(1 - jnp.dot(qdot, qdot) / c**2) - V(q)
+
+    q, _ = random_states(key, 3, 10)
+    v = jax.random.uniform(jax.random.key(1), (10, 3), minval=-1.0, maxval=1.0)
+    for qi, vi in zip(q, v):
+        F = -jax.grad(V)(qi)
+        gamma = 1 / jnp.sqrt(1 - jnp.dot(vi, vi) / c**2)
+        want = (F - jnp.dot(F, vi) * vi / c**2) / (m * gamma)
+        np.testing.assert_allclose(_acc(L, qi, vi), want, rtol=1e-12, atol=1e-14)
+        M = gamma * m * (jnp.eye(3) + gamma**2 * jnp.outer(vi, vi) / c**2)
+        np.testing.assert_allclose(lagrax.mass_matrix(L, qi, vi, 0.0), M, rtol=1e-12)
+
+
+def test_velocity_dependent_potential():
+    # Charge in a uniform magnetic field B ẑ, A = ½B(−y, x): m a = e v × B.
+    m, e, B = 2.0, 1.5, 0.8
+
+    def L(q, qdot, t):
+        A = 0.5 * B * jnp.array([-q[1], q[0]])
+        return 0.5 * m * jnp.dot(qdot, qdot) + e * jnp.dot(qdot, A)
+
+    q, v = jnp.array([0.3, -0.2]), jnp.array([1.1, 0.4])
+    want = (e * B / m) * jnp.array([v[1], -v[0]])
+    np.testing.assert_allclose(_acc(L, q, v), want, rtol=1e-13)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+def test_quadratic_lagrangian_against_linear_solve(key, n):
+    kM, kK, kq = jax.random.split(key, 3)
+    A = jax.random.normal(kM, (n, n))
+    M = A @ A.T + n * jnp.eye(n)
+    K = jax.random.normal(kK, (n, n))
+    K = K + K.T
+
+    def L(q, qdot, t):
+        return 0.5 * qdot @ M @ qdot - 0.5 * q @ K @ q
+
+    q, qdot = random_states(kq, n, 5)
+    for qi, vi in zip(q, qdot):
+        want = jnp.linalg.solve(M, -K @ qi)
+        np.testing.assert_allclose(_acc(L, qi, vi), want, rtol=1e-11, atol=1e-13)
+        np.testing.assert_allclose(lagrax.mass_matrix(L, qi, vi), M, rtol=1e-13)
+
+
+def test_negative_definite_lagrangian_same_motion():
+    L = pendulum.lagrangian(g=9.81)
+    minus_L = lambda q, qdot, t: -L(q, qdot, t)
+    q, v = jnp.array([0.8]), jnp.array([0.2])
+    np.testing.assert_allclose(_acc(minus_L, q, v), _acc(L, q, v), rtol=1e-14)
+
+
+def test_force_enters_rhs():
+    L = pendulum.lagrangian(m=2.0, r=1.0, g=9.81)
+    b = 0.3
+    force = lambda q, qdot, t: -b * qdot
+    q, v = jnp.array([0.4]), jnp.array([1.5])
+    want = -9.81 * jnp.sin(0.4) - b * 1.5 / 2.0
+    np.testing.assert_allclose(_acc(L, q, v, force=force), [want], rtol=1e-13)
+
+
+def test_momenta_energy_mass_matrix():
+    m, r, g = 1.3, 0.9, 9.81
+    L = pendulum.lagrangian(m=m, r=r, g=g)
+    q, v = jnp.array([0.7]), jnp.array([-1.1])
+    np.testing.assert_allclose(lagrax.momenta(L, q, v), [m * r**2 * -1.1], rtol=1e-14)
+    np.testing.assert_allclose(lagrax.mass_matrix(L, q, v), [[m * r**2]], rtol=1e-14)
+    h = 0.5 * m * r**2 * 1.1**2 - m * g * r * np.cos(0.7)
+    np.testing.assert_allclose(lagrax.energy(L, q, v), h, rtol=1e-14)
+
+
+def test_singular_mass_matrix_eager_error():
+    # L linear in q̇: M = 0 everywhere.
+    L = lambda q, qdot, t: q[0] * qdot[0] - 0.5 * q[0] ** 2
+    with pytest.raises(ValueError, match=r"singular or indefinite at q=\[0\.5\]"):
+        _acc(L, [0.5], [0.1])
+
+
+def test_indefinite_mass_matrix_eager_error():
+    L = lambda q, qdot, t: 0.5 * (qdot[0] ** 2 - qdot[1] ** 2) - 0.5 * q @ q
+    with pytest.raises(ValueError, match="indefinite"):
+        _acc(L, [0.1, 0.2], [0.0, 0.0])
+
+
+@pytest.mark.parametrize("n", [1, 2, 4])
+def test_degenerate_mass_matrix_is_nan_under_jit(n):
+    # Rank-deficient M (the last velocity absent from L) for every n: NaN, never a number.
+    def L(q, qdot, t):
+        v = qdot[:-1]
+        return 0.5 * jnp.dot(v, v) - 0.5 * jnp.dot(q, q)
+
+    q = jnp.linspace(0.1, 0.4, n)
+    out = jax.jit(lambda q, v: lagrax.accelerations(L, q, v, 0.0))(q, q)
+    assert jnp.all(jnp.isnan(out))
+
+
+def test_jit_vmap_equal_loop(key):
+    L = cycloid.lagrangian(R=1.2, g=9.81)
+    theta = jax.random.uniform(key, (16, 1), minval=0.3, maxval=6.0)
+    thetadot = jnp.linspace(-1, 1, 16)[:, None]
+    batched = jax.jit(jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.3)))
+    got = batched(theta, thetadot)
+    loop = jnp.stack(
+        [lagrax.accelerations(L, a, b, 0.3) for a, b in zip(theta, thetadot)]
+    )
+    np.testing.assert_allclose(got, loop, rtol=1e-14, atol=1e-14)
+
+
+class TestBadInput:
+    L = staticmethod(pendulum.lagrangian())
+
+    def test_not_callable(self):
+        with pytest.raises(TypeError, match="`L` must be a function"):
+            lagrax.accelerations(3.0, jnp.ones(1), jnp.ones(1))
+
+    def test_non_scalar_lagrangian(self):
+        with pytest.raises(TypeError, match=r"`L` must return .*scalar.*shape \(2,\)"):
+            lagrax.accelerations(lambda q, v, t: q * v, jnp.ones(2), jnp.ones(2))
+
+    def test_not_1d(self):
+        with pytest.raises(ValueError, match=r"`q` must be a 1-D array.*shape \(\)"):
+            lagrax.accelerations(self.L, jnp.array(0.5), jnp.array(0.5))
+        with pytest.raises(ValueError, match=r"`qdot` must be a 1-D"):
+            lagrax.accelerations(self.L, jnp.ones(1), jnp.ones((1, 1)))
+
+    def test_length_mismatch(self):
+        with pytest.raises(ValueError, match=r"same length.*\(2,\).*\(3,\)"):
+            lagrax.accelerations(self.L, jnp.ones(2), jnp.ones(3))
+
+    def test_integer_dtype(self):
+        with pytest.raises(TypeError, match="`q` must have a real floating dtype"):
+            lagrax.accelerations(self.L, jnp.array([1]), jnp.array([0.0]))
+
+    def test_complex_dtype(self):
+        with pytest.raises(TypeError, match="`qdot`.*complex"):
+            lagrax.accelerations(self.L, jnp.ones(1), jnp.ones(1, dtype=complex))
+
+    def test_bad_force(self):
+        with pytest.raises(TypeError, match=r"`force` must return .*shape \(1,\)"):
+            lagrax.accelerations(
+                self.L, jnp.ones(1), jnp.ones(1), force=lambda q, v, t: jnp.ones(2)
+            )
+        with pytest.raises(TypeError, match="`force` must be a function"):
+            lagrax.accelerations(self.L, jnp.ones(1), jnp.ones(1), force=1.0)
+
+    def test_nonfinite_state_eager(self):
+        with pytest.raises(ValueError, match="not finite"):
+            lagrax.accelerations(self.L, jnp.array([jnp.nan]), jnp.ones(1))
