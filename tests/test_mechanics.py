@@ -182,7 +182,7 @@ def test_indefinite_mass_matrix_eager_error():
 
 @pytest.mark.parametrize("n", [1, 2, 4])
 def test_degenerate_mass_matrix_is_nan_under_jit(n):
-    # Rank-deficient M (the last velocity absent from L) for every n: NaN, never a number.
+    # Rank-deficient M (the last velocity absent from L), any n: NaN, never a number.
     def L(q, qdot, t):
         v = qdot[:-1]
         return 0.5 * jnp.dot(v, v) - 0.5 * jnp.dot(q, q)

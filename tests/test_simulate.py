@@ -1,4 +1,4 @@
-"""Trajectories: invariants, the seed's cycloid reduction, batching, failure reporting."""
+"""Trajectories: invariants, the cycloid reduction, batching, failure reports."""
 
 import subprocess
 import sys
