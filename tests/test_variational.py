@@ -1,0 +1,279 @@
+"""The variational midpoint integrator: order, invariants, diffrax use, failures."""
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lagrax
+from lagrax._variational import _discrete_momenta
+from lagrax.systems.pendulum import pendulum_period
+
+from .helpers import tree_allclose
+
+
+PENDULUM = lagrax.systems.pendulum.lagrangian(m=1.0, r=1.0, g=1.0)
+
+
+def spherical_pendulum(m=1.0, r=1.0, g=1.0):
+    """q = (theta, phi), theta from the downward vertical: phi is cyclic."""
+
+    def L(q, qdot, t):
+        theta, _ = q
+        kinetic = 0.5 * m * r**2 * (qdot[0] ** 2 + jnp.sin(theta) ** 2 * qdot[1] ** 2)
+        return kinetic + m * g * r * jnp.cos(theta)
+
+    return L
+
+
+def double_pendulum(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
+    def L(q, qdot, t):
+        a, b = q
+        da, db = qdot
+        kinetic = 0.5 * (m1 + m2) * l1**2 * da**2 + 0.5 * m2 * l2**2 * db**2
+        kinetic = kinetic + m2 * l1 * l2 * da * db * jnp.cos(a - b)
+        potential = -(m1 + m2) * g * l1 * jnp.cos(a) - m2 * g * l2 * jnp.cos(b)
+        return kinetic - potential
+
+    return L
+
+
+def _solve(L, y0, t1, h, *, saveat=None, solver=None, t0=0.0, force=None, **kw):
+    return dfx.diffeqsolve(
+        lagrax.LagrangianTerm(L, force=force),
+        lagrax.VariationalMidpoint() if solver is None else solver,
+        jnp.asarray(t0),  # arrays, not Python floats: no recompilation per value
+        jnp.asarray(t1),
+        jnp.asarray(h),
+        y0,
+        saveat=dfx.SaveAt(t1=True) if saveat is None else saveat,
+        stepsize_controller=dfx.ConstantStepSize(),
+        **kw,
+    )
+
+
+def _reference(L, y0, t1, t0=0.0, force=None):
+    return dfx.diffeqsolve(
+        lagrax.LagrangianTerm(L, force=force),
+        dfx.Dopri8(),
+        jnp.asarray(t0),
+        jnp.asarray(t1),
+        0.01,
+        y0,
+        stepsize_controller=dfx.PIDController(rtol=1e-13, atol=1e-13),
+        max_steps=100_000,
+    )
+
+
+def test_discrete_momenta_are_the_gradients_of_the_discrete_lagrangian():
+    L = double_pendulum(m2=2.0, l2=0.7)
+    q0, q1 = jnp.array([0.3, -1.2]), jnp.array([0.35, -1.1])
+    t0, h = 0.2, 0.05
+
+    def Ld(q0, q1):
+        return h * L((q0 + q1) / 2, (q1 - q0) / h, t0 + h / 2)
+
+    pm, pp = _discrete_momenta(L, None, q0, q1 - q0, t0, h)
+    d0, d1 = jax.grad(Ld, argnums=(0, 1))(q0, q1)
+    assert tree_allclose((pm, pp), (-d0, d1), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "L",
+    [PENDULUM, pytest.param(double_pendulum(), marks=pytest.mark.slow)],
+    ids=["pendulum", "double"],
+)
+def test_second_order_convergence(L):
+    n = 1 if L is PENDULUM else 2
+    y0 = (jnp.full((n,), 2.5 if n == 1 else 1.0), jnp.zeros(n))
+    t1 = 4.0
+    ref = _reference(L, y0, t1)
+    hs = np.array([0.2, 0.1, 0.05, 0.025, 0.0125])
+    errors = []
+    for h in hs:
+        sol = _solve(L, y0, t1, h)
+        assert sol.result == dfx.RESULTS.successful
+        errors.append(
+            max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(sol.ys, ref.ys))
+        )
+    order, _ = np.polyfit(np.log(hs), np.log(errors), 1)
+    assert 1.9 < order < 2.1, (order, errors)
+
+
+def _energy_window_maxima(solver, h, periods, windows=10):
+    T = float(pendulum_period(2.5))
+    y0 = (jnp.array([2.5]), jnp.array([0.0]))
+    nsteps = int(round(periods * T / h))
+    sol = _solve(
+        PENDULUM,
+        y0,
+        periods * T,
+        h,
+        solver=solver,
+        saveat=dfx.SaveAt(steps=True),
+        max_steps=nsteps + 1,
+    )
+    assert sol.result == dfx.RESULTS.successful
+    qs, qdots = sol.ys
+    keep = np.isfinite(np.asarray(sol.ts))
+    energy = jax.vmap(lambda q, v: lagrax.energy(PENDULUM, q, v, 0.0))(qs, qdots)
+    error = np.abs(np.asarray(energy)[keep] - float(lagrax.energy(PENDULUM, *y0)))
+    return np.array([w.max() for w in np.array_split(error, windows)])
+
+
+def _energy_drift_check(periods):
+    T = float(pendulum_period(2.5))
+    h = T / 40
+    # Comparable cost: the midpoint step takes ~3 Newton iterations; Tsit5 at twice
+    # the step takes 6 stages per 2h, i.e. the same number of evaluations per h.
+    vi = _energy_window_maxima(lagrax.VariationalMidpoint(), h, periods)
+    rk = _energy_window_maxima(dfx.Tsit5(), 2 * h, periods)
+    # Variational: the same bound in the last tenth of the run as in the first.
+    assert vi[-1] < 1.05 * vi[0], vi
+    # Explicit RK: a secular (linear) drift, several times its early error by the end.
+    assert rk[-1] > 5 * rk[0], rk
+    assert rk[-1] > vi[-1], (rk, vi)
+
+
+def test_energy_bounded_no_drift_1e3_periods():
+    _energy_drift_check(1_000)
+
+
+@pytest.mark.slow
+def test_energy_bounded_no_drift_1e4_periods():
+    _energy_drift_check(10_000)
+
+
+def test_noether_momentum_of_cyclic_coordinate_exact():
+    L = spherical_pendulum()
+    y0 = (jnp.array([1.0, 0.0]), jnp.array([0.2, 1.3]))
+    saveat = dfx.SaveAt(steps=True, solver_state=True)
+    nsteps = 2000
+    sol = _solve(L, y0, nsteps * 0.05, 0.05, saveat=saveat, max_steps=nsteps)
+    assert sol.result == dfx.RESULTS.successful
+    qs, qdots = sol.ys
+    p_phi = jax.vmap(lambda q, v: lagrax.momenta(L, q, v, 0.0))(qs, qdots)[:, 1]
+    p_phi0 = float(lagrax.momenta(L, *y0, 0.0)[1])
+    eps = np.finfo(np.float64).eps
+    # Round-off only: a random walk of a few ulps per step over 2000 steps.
+    assert np.max(np.abs(np.asarray(p_phi) - p_phi0)) < 200 * eps * abs(p_phi0)
+    # The momentum the scheme advances (the solver state) at the end, too.
+    p_end = sol.solver_state[0][1]
+    assert abs(float(p_end) - p_phi0) < 200 * eps * abs(p_phi0)
+    # An explicit solver at the same step is much further off: the test is sharp.
+    rk = _solve(L, y0, nsteps * 0.05, 0.05, solver=dfx.Tsit5(), max_steps=nsteps)
+    p_rk = float(lagrax.momenta(L, rk.ys[0][-1], rk.ys[1][-1], 0.0)[1])
+    assert abs(p_rk - p_phi0) > 1e4 * eps * abs(p_phi0)
+
+
+def test_time_reversible():
+    y0 = (jnp.array([2.5]), jnp.array([0.0]))
+    fwd = _solve(PENDULUM, y0, 5.0, 0.05)
+    y1 = jax.tree_util.tree_map(lambda x: x[-1], fwd.ys)
+    back = _solve(PENDULUM, y1, 0.0, -0.05, t0=5.0)
+    assert back.result == dfx.RESULTS.successful
+    y0_back = jax.tree_util.tree_map(lambda x: x[-1], back.ys)
+    assert tree_allclose(y0_back, y0, rtol=0, atol=1e-10)
+    # ... and not trivially: the state did move.
+    assert not tree_allclose(y1, y0, rtol=0, atol=1e-2)
+
+
+def test_vmap_and_saveat_match_a_python_loop():
+    ts = jnp.linspace(0.0, 3.0, 7)
+    q0s = jnp.array([[0.5], [1.5], [2.5]])
+
+    @jax.jit
+    @jax.vmap
+    def batch(q0):
+        y0 = (q0, jnp.zeros(1))
+        return _solve(PENDULUM, y0, 3.0, 0.01, saveat=dfx.SaveAt(ts=ts)).ys
+
+    qs, qdots = batch(q0s)
+    assert qs.shape == (3, 7, 1)
+    for i, q0 in enumerate(q0s):
+        one = _solve(PENDULUM, (q0, jnp.zeros(1)), 3.0, 0.01, saveat=dfx.SaveAt(ts=ts))
+        assert tree_allclose((qs[i], qdots[i]), one.ys, rtol=1e-12, atol=1e-12)
+    # Saved at t=0: exactly the initial state.
+    assert tree_allclose(qs[:, 0], q0s, rtol=0, atol=0)
+
+
+def test_progress_meter_runs():
+    sol = _solve(
+        PENDULUM,
+        (jnp.array([1.0]), jnp.array([0.0])),
+        1.0,
+        0.1,
+        progress_meter=dfx.TextProgressMeter(),
+    )
+    assert sol.result == dfx.RESULTS.successful
+
+
+def test_damping_force_and_time_dependence_converge():
+    c = 0.3
+
+    def L(q, qdot, t):  # a pendulum whose support length changes slowly in time
+        r = 1.0 + 0.1 * jnp.sin(t)
+        return 0.5 * r**2 * qdot[0] ** 2 + r * jnp.cos(q[0])
+
+    def force(q, qdot, t):
+        return -c * qdot
+
+    y0 = (jnp.array([1.0]), jnp.array([0.0]))
+    ref = _reference(L, y0, 3.0, force=force)
+    errs = []
+    for h in (0.02, 0.01):
+        sol = _solve(L, y0, 3.0, h, force=force)
+        errs.append(max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(sol.ys, ref.ys)))
+    assert errs[0] < 1e-3
+    assert 3.0 < errs[0] / errs[1] < 5.0, errs  # second order: ~4x per halving
+
+
+def test_newton_failure_is_reported_not_nan_success():
+    # One Newton iteration can never pass the Cauchy test (it needs two): a failure.
+    y0 = (jnp.array([1.0]), jnp.array([0.0]))
+    sol = _solve(
+        PENDULUM,
+        y0,
+        1.0,
+        0.1,
+        solver=lagrax.VariationalMidpoint(max_newton_steps=1),
+        throw=False,
+    )
+    assert sol.result == dfx.RESULTS.nonlinear_max_steps_reached
+
+    # A potential that is NaN for q < 0, crossed by a large step: Newton's iterates go
+    # non-finite; the lane fails, its neighbour in the batch does not.
+    def L(q, qdot, t):
+        return 0.5 * qdot[0] ** 2 - 1.0 / jnp.sqrt(q[0]) + 0.0 * q[0]
+
+    @jax.vmap
+    def batch(v0):
+        y0 = (jnp.array([1.0]), jnp.array([v0]))
+        return _solve(L, y0, 2.0, 0.5, throw=False)
+
+    sols = batch(jnp.array([0.1, -5.0]))
+    ok = np.asarray(sols.result == dfx.RESULTS.successful)
+    assert ok.tolist() == [True, False]
+    assert np.all(np.isfinite(np.asarray(sols.ys[0][0])))
+
+
+def test_wrong_term_is_a_clear_error():
+    with pytest.raises(Exception, match="LagrangianTerm"):
+        dfx.diffeqsolve(
+            dfx.ODETerm(lagrax.vector_field(PENDULUM)),
+            lagrax.VariationalMidpoint(),
+            0.0,
+            1.0,
+            0.1,
+            (jnp.array([1.0]), jnp.array([0.0])),
+        )
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="max_newton_steps"):
+        lagrax.VariationalMidpoint(max_newton_steps=0)
+    with pytest.raises(ValueError, match="rtol"):
+        lagrax.VariationalMidpoint(rtol=-1.0)
+    with pytest.raises(TypeError, match="L"):
+        lagrax.LagrangianTerm(3.0)
