@@ -82,37 +82,52 @@ def _lagrange_terms(L, q, qdot, t):
 def _solve_definite(M, rhs):
     r"""Solves `M x = rhs` for a definite `M`; returns `(x, ok)`.
 
-    `ok` is False when `M` is not definite (either sign) or is singular to working
-    precision (estimated reciprocal condition number below $n\varepsilon$). Small `n`
-    gets a closed form: it is both faster than a batched LAPACK call under `vmap` and
-    exact about the failure test.
+    `ok` is False when `M` is not definite (either sign), is singular to working
+    precision (estimated reciprocal condition number below $n\varepsilon$) or has a
+    non-finite entry. Small `n` gets a closed form: it is both faster than a batched
+    LAPACK call under `vmap` and exact about the failure test.
     """
     n = M.shape[0]
     eps = jnp.finfo(M.dtype).eps
+    # n <= 2 works on the scalar entries only: a reduction over M (`jnp.all`) or a
+    # product with the whole (n, n) array stops XLA from fusing the solve with the
+    # Lagrangian's derivatives, which doubled the cost of a vmapped 1-DOF evaluation
+    # and cost 1.6x for 2 DOF (benchmarks/eom_overhead.py).
+    if n == 1:
+        a = M[0, 0]
+        sign = jnp.where(a < 0, -1.0, 1.0).astype(M.dtype)
+        a = sign * a
+        ok = (a > 0) & jnp.isfinite(a)
+        x = (sign * rhs) / jnp.where(ok, a, 1.0)
+        return x, ok
+    if n == 2:
+        sign = jnp.where(M[0, 0] < 0, -1.0, 1.0).astype(M.dtype)
+        a, d = sign * M[0, 0], sign * M[1, 1]
+        c = 0.5 * sign * (M[0, 1] + M[1, 0])
+        b0, b1 = sign * rhs[0], sign * rhs[1]
+        det = a * d - c * c
+        # A NaN or infinite off-diagonal entry makes c non-finite.
+        ok = (
+            (a > 0)
+            & (det > 2 * eps * a * d)
+            & jnp.isfinite(a)
+            & jnp.isfinite(d)
+            & jnp.isfinite(c)
+        )
+        safe = jnp.where(ok, det, 1.0)
+        x = jnp.stack([(d * b0 - c * b1) / safe, (a * b1 - c * b0) / safe])
+        return x, ok
     sign = jnp.where(M[0, 0] < 0, -1.0, 1.0).astype(M.dtype)
     A = sign * M
-    b = sign * rhs
-    if n == 1:
-        a = A[0, 0]
-        ok = a > 0
-        x = b / jnp.where(ok, a, 1.0)
-    elif n == 2:
-        a, d = A[0, 0], A[1, 1]
-        c = 0.5 * (A[0, 1] + A[1, 0])
-        det = a * d - c * c
-        ok = (a > 0) & (det > 2 * eps * a * d)
-        safe = jnp.where(ok, det, 1.0)
-        x = jnp.stack([d * b[0] - c * b[1], a * b[1] - c * b[0]]) / safe
-    else:
-        A = 0.5 * (A + A.T)
-        C = jnp.linalg.cholesky(A)
-        diag = jnp.diagonal(C)
-        # cond(A) >= (max diag C / min diag C)^2: a cheap certificate of singularity.
-        ok = jnp.all(jnp.isfinite(diag)) & (
-            jnp.min(diag) ** 2 > n * eps * jnp.max(diag) ** 2
-        )
-        C = jnp.where(ok, C, jnp.eye(n, dtype=M.dtype))
-        x = jsl.cho_solve((C, True), b)
+    A = 0.5 * (A + A.T)
+    C = jnp.linalg.cholesky(A)
+    diag = jnp.diagonal(C)
+    # cond(A) >= (max diag C / min diag C)^2: a cheap certificate of singularity.
+    ok = jnp.all(jnp.isfinite(diag)) & (
+        jnp.min(diag) ** 2 > n * eps * jnp.max(diag) ** 2
+    )
+    C = jnp.where(ok, C, jnp.eye(n, dtype=M.dtype))
+    x = jsl.cho_solve((C, True), sign * rhs)
     ok = ok & jnp.all(jnp.isfinite(M))
     return x, ok
 

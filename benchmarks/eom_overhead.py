@@ -1,0 +1,463 @@
+r"""What the autodiff equations of motion cost inside a diffrax solve.
+
+Run time of `lagrax.accelerations` (through `lagrax.vector_field` in one
+`diffrax.diffeqsolve`, and through `lagrax.simulate`) against a hand-written equation of
+motion, with the same solver and the same steps, for a batch of initial conditions under
+`jit(vmap(...))`:
+
+- pendulum, $L = \frac12\dot\theta^2 + \cos\theta$, against $\ddot\theta = -\sin\theta$;
+- cycloid in the seed's $\theta$ (released between $\theta = 1$ and the bottom, away
+  from the cusp), against the seed's final form;
+- double pendulum, against its closed-form equations of motion, and against the
+  equations sympy derives (Euler–Lagrange, solved and simplified symbolically) and
+  emits with `sympy.lambdify(..., "jax")`. Symbolic derivation time is reported
+  separately.
+
+Two step regimes:
+
+- *fixed*: Tsit5 with `ConstantStepSize`, the same number of steps for every variant
+  (checked): `hand`, `sympy`, `lagrax` (`vector_field` in `diffeqsolve`) and `simulate`
+  (`lagrax.simulate(..., stepsize_controller=ConstantStepSize(), dt0=dt)`).
+- *adaptive*: `lagrax.simulate` with its default controller (a PID controller with a
+  `dtmin`), and `vector_field` in `diffeqsolve` with that same controller, against the
+  hand-written EOM in `diffeqsolve` with that same controller. The
+  step counts are reported and compared lane by lane: round-off differences between the
+  two EOMs can change an accept/reject decision, so the ratio is also given per step.
+
+Each compiled function is built once (compile time measured on its own); the variants
+are then timed in interleaved rounds (each round runs every variant once, in a rotated
+order) with `jax.block_until_ready`, and the median over rounds is reported. The ratios
+are variant / hand-written, measured in the same run.
+
+Usage: `python benchmarks/eom_overhead.py [--quick] [--repeats N] [--batch B]`.
+Writes `benchmarks/results/eom_overhead.json` and `eom_overhead.png`
+(`eom_overhead_quick.*` with `--quick`, so a quick run does not overwrite the full one).
+"""
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import statistics
+import time
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax as dfx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import lagrax  # noqa: E402
+from lagrax._simulate import default_controller  # noqa: E402
+from lagrax.systems import cycloid, pendulum  # noqa: E402
+
+
+RESULTS = pathlib.Path(__file__).parent / "results"
+
+
+# ----------------------------------------------------------------------------- systems
+
+
+def double_pendulum_lagrangian(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
+    r"""$L = \frac12(m_1+m_2)l_1^2\dot\theta_1^2 + \frac12 m_2 l_2^2\dot\theta_2^2
+    + m_2 l_1 l_2\dot\theta_1\dot\theta_2\cos(\theta_1-\theta_2)
+    + (m_1+m_2)g l_1\cos\theta_1 + m_2 g l_2\cos\theta_2$."""
+
+    def L(q, qdot, t):
+        th1, th2 = q[0], q[1]
+        w1, w2 = qdot[0], qdot[1]
+        T = (
+            0.5 * (m1 + m2) * l1**2 * w1**2
+            + 0.5 * m2 * l2**2 * w2**2
+            + m2 * l1 * l2 * w1 * w2 * jnp.cos(th1 - th2)
+        )
+        V = -(m1 + m2) * g * l1 * jnp.cos(th1) - m2 * g * l2 * jnp.cos(th2)
+        return T - V
+
+    return L
+
+
+def double_pendulum_hand(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
+    """The textbook closed form of the double pendulum's accelerations."""
+
+    def qddot(q, qdot):
+        th1, th2 = q[0], q[1]
+        w1, w2 = qdot[0], qdot[1]
+        d = th1 - th2
+        sd, cd = jnp.sin(d), jnp.cos(d)
+        den = 2 * m1 + m2 - m2 * jnp.cos(2 * d)
+        a1 = (
+            -g * (2 * m1 + m2) * jnp.sin(th1)
+            - m2 * g * jnp.sin(th1 - 2 * th2)
+            - 2 * sd * m2 * (w2**2 * l2 + w1**2 * l1 * cd)
+        ) / (l1 * den)
+        a2 = (
+            2
+            * sd
+            * (
+                w1**2 * l1 * (m1 + m2)
+                + g * (m1 + m2) * jnp.cos(th1)
+                + w2**2 * l2 * m2 * cd
+            )
+        ) / (l2 * den)
+        return jnp.stack([a1, a2])
+
+    return qddot
+
+
+def double_pendulum_sympy(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
+    """Euler–Lagrange by sympy, solved for the accelerations, simplified, lambdified.
+
+    Returns `(qddot, seconds)`, the second being the symbolic derivation time (up to and
+    including `lambdify`).
+    """
+    import sympy as sp
+
+    start = time.perf_counter()
+    th = sp.symbols("th1 th2")
+    w = sp.symbols("w1 w2")
+    L = (
+        sp.Rational(1, 2) * (m1 + m2) * l1**2 * w[0] ** 2
+        + sp.Rational(1, 2) * m2 * l2**2 * w[1] ** 2
+        + m2 * l1 * l2 * w[0] * w[1] * sp.cos(th[0] - th[1])
+        + (m1 + m2) * g * l1 * sp.cos(th[0])
+        + m2 * g * l2 * sp.cos(th[1])
+    )
+    L = sp.nsimplify(L)
+    M = sp.Matrix(2, 2, lambda i, j: sp.diff(L, w[i], w[j]))
+    rhs = sp.Matrix(
+        [
+            sp.diff(L, th[i]) - sum(sp.diff(L, w[i], th[j]) * w[j] for j in range(2))
+            for i in range(2)
+        ]
+    )
+    acc = [sp.simplify(e) for e in M.LUsolve(rhs)]
+    f = sp.lambdify([*th, *w], acc, "jax")
+    seconds = time.perf_counter() - start
+
+    def qddot(q, qdot):
+        return jnp.stack(f(q[0], q[1], qdot[0], qdot[1]))
+
+    return qddot, seconds
+
+
+def _second_order(acc):
+    def f(t, y, args):
+        q, qdot = y
+        return qdot, acc(q, qdot)
+
+    return f
+
+
+def systems(batch, key):
+    """Each system: Lagrangian, hand-written vector field(s), initial states, t1."""
+    k1, k2 = jax.random.split(key)
+    out = {}
+    # Pendulum: amplitudes 0.1..3.0 rad from rest.
+    th0 = jnp.linspace(0.1, 3.0, batch)[:, None]
+    out["pendulum"] = dict(
+        L=pendulum.lagrangian(),
+        hand={"hand": _second_order(lambda q, qdot: pendulum.acceleration(q))},
+        y0=(th0, jnp.zeros_like(th0)),
+    )
+    # Cycloid in θ: released from rest between θ = 1 and the bottom (π); the motion
+    # stays in [θ0, 2π - θ0], at least 1 rad from either cusp.
+    th0 = jnp.linspace(1.0, 3.0, batch)[:, None]
+    out["cycloid"] = dict(
+        L=cycloid.lagrangian(),
+        hand={"hand": _second_order(lambda q, qdot: cycloid.acceleration(q, qdot))},
+        y0=(th0, jnp.zeros_like(th0)),
+    )
+    # Double pendulum: both angles in [-1, 1] rad, small random velocities.
+    q0 = jax.random.uniform(k1, (batch, 2), minval=-1.0, maxval=1.0)
+    qdot0 = jax.random.uniform(k2, (batch, 2), minval=-0.5, maxval=0.5)
+    sympy_acc, sympy_seconds = double_pendulum_sympy()
+    out["double_pendulum"] = dict(
+        L=double_pendulum_lagrangian(),
+        hand={
+            "hand": _second_order(double_pendulum_hand()),
+            "sympy": _second_order(sympy_acc),
+        },
+        y0=(q0, qdot0),
+        sympy_derivation_s=sympy_seconds,
+    )
+    return out
+
+
+# --------------------------------------------------------------------------- variants
+
+
+def fixed_variants(system, dt, nsteps):
+    """Fixed-step Tsit5 solves of one state, keyed by variant name."""
+    t0 = 0.0
+    t1 = dt * nsteps
+    # ConstantStepSize may need one more step than nsteps if dt*nsteps rounds down; the
+    # step counts are checked afterwards anyway.
+    max_steps = nsteps + 1
+    solver = dfx.Tsit5()
+    saveat = dfx.SaveAt(t1=True)
+
+    def through_diffrax(f):
+        def solve(q0, qdot0):
+            sol = dfx.diffeqsolve(
+                dfx.ODETerm(f),
+                solver,
+                t0,
+                t1,
+                dt,
+                (q0, qdot0),
+                saveat=saveat,
+                stepsize_controller=dfx.ConstantStepSize(),
+                max_steps=max_steps,
+            )
+            return sol.ys, sol.stats["num_steps"], sol.result._value
+
+        return solve
+
+    def through_simulate(q0, qdot0):
+        sol = lagrax.simulate(
+            system["L"],
+            q0,
+            qdot0,
+            t0,
+            t1,
+            solver=solver,
+            dt0=dt,
+            stepsize_controller=dfx.ConstantStepSize(),
+            max_steps=max_steps,
+            throw=False,
+        )
+        return sol.ys, sol.stats["num_steps"], sol.result._value
+
+    variants = {name: through_diffrax(f) for name, f in system["hand"].items()}
+    variants["lagrax"] = through_diffrax(lagrax.vector_field(system["L"]))
+    variants["simulate"] = through_simulate
+    return variants
+
+
+def adaptive_variants(system, t1, rtol, max_steps):
+    """Adaptive Tsit5 solves with `simulate`'s default controller, keyed by name."""
+    t0 = 0.0
+    solver = dfx.Tsit5()
+    saveat = dfx.SaveAt(t1=True)
+
+    def through_diffrax(f):
+        def solve(q0, qdot0):
+            controller = default_controller(
+                rtol, rtol, jnp.asarray(t0), jnp.asarray(t1), q0.dtype
+            )
+            sol = dfx.diffeqsolve(
+                dfx.ODETerm(f),
+                solver,
+                t0,
+                t1,
+                None,
+                (q0, qdot0),
+                saveat=saveat,
+                stepsize_controller=controller,
+                max_steps=max_steps,
+                throw=False,
+            )
+            return sol.ys, sol.stats["num_steps"], sol.result._value
+
+        return solve
+
+    def through_simulate(q0, qdot0):
+        sol = lagrax.simulate(
+            system["L"],
+            q0,
+            qdot0,
+            t0,
+            t1,
+            solver=solver,
+            rtol=rtol,
+            atol=rtol,
+            max_steps=max_steps,
+            throw=False,
+        )
+        return sol.ys, sol.stats["num_steps"], sol.result._value
+
+    variants = {name: through_diffrax(f) for name, f in system["hand"].items()}
+    variants["lagrax"] = through_diffrax(lagrax.vector_field(system["L"]))
+    variants["simulate"] = through_simulate
+    return variants
+
+
+# ---------------------------------------------------------------------------- timing
+
+
+def compile_all(variants, y0):
+    compiled, compile_s, outputs = {}, {}, {}
+    for name, solve in variants.items():
+        start = time.perf_counter()
+        fn = jax.jit(jax.vmap(solve)).lower(*y0).compile()
+        compile_s[name] = time.perf_counter() - start
+        compiled[name] = fn
+        outputs[name] = jax.block_until_ready(fn(*y0))  # warm-up, and the answers
+    return compiled, compile_s, outputs
+
+
+def time_interleaved(compiled, y0, repeats):
+    names = list(compiled)
+    samples = {name: [] for name in names}
+    for r in range(repeats):
+        shift = r % len(names)
+        for name in names[shift:] + names[:shift]:
+            start = time.perf_counter()
+            jax.block_until_ready(compiled[name](*y0))
+            samples[name].append(time.perf_counter() - start)
+    return samples
+
+
+def summarize(samples, compile_s, outputs, reference="hand"):
+    ref_ys = outputs[reference][0]
+    ref_median = statistics.median(samples[reference])
+    ref_steps = np.asarray(outputs[reference][1])
+    rows = {}
+    for name, times in samples.items():
+        ys, steps, result = outputs[name]
+        steps = np.asarray(steps)
+        diff = max(
+            float(jnp.max(jnp.abs(a - b)))
+            for a, b in zip(jax.tree.leaves(ys), jax.tree.leaves(ref_ys))
+        )
+        median = statistics.median(times)
+        rows[name] = dict(
+            median_s=median,
+            min_s=min(times),
+            times_s=times,
+            compile_s=compile_s[name],
+            ratio=median / ref_median,
+            total_steps=int(steps.sum()),
+            max_steps=int(steps.max()),
+            lanes_with_other_step_count=int(np.sum(steps != ref_steps)),
+            ratio_per_step=(median / steps.sum()) / (ref_median / ref_steps.sum()),
+            failed_lanes=int(np.sum(np.asarray(result) != 0)),
+            max_abs_diff_from_hand=diff,
+        )
+    return rows
+
+
+def check_accuracy(system, y0, count=64):
+    """Autodiff accelerations agree with each hand-written EOM at the initial states."""
+    q, qdot = (x[:count] for x in y0)
+    auto = jax.vmap(lambda q, v: lagrax.vector_field(system["L"])(0.0, (q, v), None))(
+        q, qdot
+    )[1]
+    errors = {}
+    for name, f in system["hand"].items():
+        hand = jax.vmap(lambda q, v: f(0.0, (q, v), None))(q, qdot)[1]
+        errors[name] = float(jnp.max(jnp.abs(auto - hand) / (1 + jnp.abs(hand))))
+        if errors[name] > 1e-10:
+            raise AssertionError(f"autodiff and {name} EOM disagree: {errors[name]}")
+    return errors
+
+
+# ------------------------------------------------------------------------------ main
+
+
+def plot(report, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, regime in zip(axes, ["fixed", "adaptive"]):
+        labels, ratios, colors = [], [], []
+        palette = {"hand": "0.6", "sympy": "tab:green", "lagrax": "tab:blue"}
+        for sysname, entry in report["systems"].items():
+            for name, row in entry[regime].items():
+                labels.append(f"{sysname}\n{name}")
+                ratios.append(row["ratio"])
+                colors.append(palette.get(name, "tab:orange"))
+        x = np.arange(len(labels))
+        ax.bar(x, ratios, color=colors)
+        ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
+        for target, style in [(1.1, ":"), (1.5, "--")]:
+            ax.axhline(target, color="k", linestyle=style, linewidth=0.8)
+        ax.set_title(f"{regime} steps (Tsit5, batch {report['batch']})")
+    axes[0].set_ylabel("run time / hand-written EOM")
+    fig.suptitle(
+        "lagrax autodiff EOM overhead (targets: 1.1× for 1 DOF, 1.5× for 2 DOF)"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a small, fast run")
+    parser.add_argument("--repeats", type=int, default=None)
+    parser.add_argument("--batch", type=int, default=None)
+    parser.add_argument("--steps", type=int, default=None, help="fixed-step count")
+    parser.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    batch = args.batch or (256 if args.quick else 1024)
+    repeats = args.repeats or (3 if args.quick else 9)
+    nsteps = args.steps or (200 if args.quick else 1000)
+    dt = 0.01
+    t1_adaptive = 10.0 if args.quick else 40.0
+    rtol = 1e-10
+    max_steps = 16384
+
+    report = dict(
+        benchmark="eom_overhead",
+        machine=f"{platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} cores, jax {jax.__version__} on {jax.default_backend()}, "
+        f"diffrax {dfx.__version__ if hasattr(dfx, '__version__') else '?'}",
+        note="shared, noisy CPU: compare ratios within one run",
+        batch=batch,
+        repeats=repeats,
+        fixed=dict(solver="Tsit5", dt=dt, steps=nsteps),
+        adaptive=dict(solver="Tsit5", t1=t1_adaptive, rtol=rtol, atol=rtol),
+        systems={},
+    )
+    print(report["machine"])
+    for sysname, system in systems(batch, jax.random.key(0)).items():
+        y0 = system["y0"]
+        entry = dict(accuracy=check_accuracy(system, y0))
+        if "sympy_derivation_s" in system:
+            entry["sympy_derivation_s"] = system["sympy_derivation_s"]
+        for regime, variants in [
+            ("fixed", fixed_variants(system, dt, nsteps)),
+            ("adaptive", adaptive_variants(system, t1_adaptive, rtol, max_steps)),
+        ]:
+            compiled, compile_s, outputs = compile_all(variants, y0)
+            samples = time_interleaved(compiled, y0, repeats)
+            entry[regime] = summarize(samples, compile_s, outputs)
+        report["systems"][sysname] = entry
+
+    header = (
+        f"{'system':<16} {'regime':<8} {'variant':<9} {'median ms':>10} {'ratio':>7} "
+        f"{'/step':>7} {'steps':>9} {'compile s':>9} {'max|Δy|':>9}"
+    )
+    print(f"batch {batch}, {repeats} interleaved repeats, Tsit5")
+    print(header)
+    print("-" * len(header))
+    for sysname, entry in report["systems"].items():
+        for regime in ["fixed", "adaptive"]:
+            for name, row in entry[regime].items():
+                print(
+                    f"{sysname:<16} {regime:<8} {name:<9} "
+                    f"{1e3 * row['median_s']:>10.1f} "
+                    f"{row['ratio']:>7.3f} {row['ratio_per_step']:>7.3f} "
+                    f"{row['total_steps']:>9d} {row['compile_s']:>9.2f} "
+                    f"{row['max_abs_diff_from_hand']:>9.1e}"
+                )
+        if "sympy_derivation_s" in entry:
+            print(f"{sysname}: sympy derivation {entry['sympy_derivation_s']:.2f} s")
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = "eom_overhead_quick" if args.quick else "eom_overhead"
+    report["quick"] = args.quick
+    (args.out / f"{stem}.json").write_text(json.dumps(report, indent=1))
+    plot(report, args.out / f"{stem}.png")
+    print(f"wrote {args.out / stem}.json and .png")
+
+
+if __name__ == "__main__":
+    main()
