@@ -17,14 +17,13 @@ $\cos q - \cos q_0$ is all rounding error). Both are removed here:
 - $\bar A$ is itself a (short) Gauss–Legendre quadrature of $V'$, a sum of terms of one
   sign: relative accuracy without ever subtracting two values of $V$.
 - The far turning point solves $\int_{q_0}^{q_1} V'(q)\,dq = 0$: bracketed on a
-  geometric grid, narrowed by `optimistix.Bisection`, polished by Newton steps.
+  geometric grid, narrowed by bisection, polished by Newton steps.
 """
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from ._custom_types import Lagrangian
@@ -178,10 +177,21 @@ def _period_one(L, q0, rtol, nodes: int, inner_nodes: int):
     m0 = mass(q0)
     s = jnp.where(f0 > 0, -1.0, 1.0).astype(dtype)  # direction of motion from rest
 
-    def mean_force(ell, tau, w):
+    def mean_force(ell, tau, w, q0=q0):
         # The mean over [q0, q0 + s ell] of s V', and the mean of |V'| (rounding scale).
         forces = s * jax.vmap(dV)(q0 + s * ell * tau)
         return jnp.sum(w * forces), jnp.sum(w * jnp.abs(forces))
+
+    # Steps 1-2 locate q1 to ~1e-11 without gradients (loops of data-dependent length
+    # are not reverse-differentiable); the Newton steps of 3 then give the implicit
+    # derivative of q1, so the period is differentiable in q0 and in parameters of L.
+    q0_c, f0_c, k0_c = jax.lax.stop_gradient((q0, f0, k0))
+
+    def dV_c(q):
+        return jax.lax.stop_gradient(dV(q))
+
+    def mean_force_c(ell, tau, w):
+        return jax.lax.stop_gradient(mean_force(ell, tau, w, q0_c))
 
     # 1. A bracket for the far turning point. Along the direction of motion, on a
     #    quarter-octave grid of distances around the local scale |V'/V''|, the energy
@@ -191,7 +201,8 @@ def _period_one(L, q0, rtol, nodes: int, inner_nodes: int):
     #    top met on the way (force turning from uphill to downhill) is located and G
     #    tested there too; a barrier passed below its top lets the search go on.
     scale = jnp.minimum(
-        jnp.abs(f0) / jnp.maximum(jnp.abs(k0), tiny), jnp.maximum(jnp.abs(q0), 1.0)
+        jnp.abs(f0_c) / jnp.maximum(jnp.abs(k0_c), tiny),
+        jnp.maximum(jnp.abs(q0_c), 1.0),
     )
     scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
     grid = scale * jnp.exp2((jnp.arange(_GRID, dtype=dtype) - _GRID_BELOW) / 4)
@@ -200,11 +211,11 @@ def _period_one(L, q0, rtol, nodes: int, inner_nodes: int):
     def integral(l0, l1):
         # The integral of s V'(q0 + s x) over x in [l0, l1].
         xs = l0 + (l1 - l0) * scan_tau
-        return (l1 - l0) * jnp.sum(scan_w * s * jax.vmap(dV)(q0 + s * xs))
+        return (l1 - l0) * jnp.sum(scan_w * s * jax.vmap(dV_c)(q0_c + s * xs))
 
     G = jnp.cumsum(jax.vmap(integral)(edges[:-1], edges[1:]))
-    F = s * jax.vmap(dV)(q0 + s * grid)
-    F_prev = jnp.concatenate([-jnp.abs(f0)[None], F[:-1]])
+    F = s * jax.vmap(dV_c)(q0_c + s * grid)
+    F_prev = jnp.concatenate([-jnp.abs(f0_c)[None], F[:-1]])
     top = (F_prev > 0) & (F <= 0)
     event = (G >= 0) | top
     index = jnp.arange(_GRID)
@@ -218,7 +229,7 @@ def _period_one(L, q0, rtol, nodes: int, inner_nodes: int):
         def bisect_top(_, bracket):
             lo, hi = bracket
             mid = lo + (hi - lo) / 2
-            uphill = s * dV(q0 + s * mid) > 0
+            uphill = s * dV_c(q0_c + s * mid) > 0
             return jnp.where(uphill, mid, lo), jnp.where(uphill, hi, mid)
 
         _, l_top = jax.lax.fori_loop(0, 64, bisect_top, (l_prev, l_j))
@@ -238,37 +249,33 @@ def _period_one(L, q0, rtol, nodes: int, inner_nodes: int):
     found = flag == 1
     escapes = flag == 2
 
-    # 2. Bisection (optimistix) on the normalised mean force, to a relative 1e-8.
-    g_upper, _ = mean_force(upper, scan_tau, scan_w)
-    norm = jnp.abs(f0) + jnp.abs(g_upper)
-    norm = jnp.where(norm > 0, norm, 1.0)
-
-    def fn(lam, args):
-        g, _ = mean_force(lam * upper, root_tau, root_w)
-        return g / norm
-
+    # 2. Bisection on the mean force over [0, ell], 32 halvings of the quarter-octave
+    #    bracket (to ~1e-11 relative). Hand-written rather than optimistix.Bisection:
+    #    a fixed count is all vmap needs, and it halves the compile time.
     safe = found & jnp.isfinite(upper)
     upper_safe = jnp.where(safe, upper, 1.0)
-    lam_lo = jnp.where(safe, lower / upper_safe, 0.5)
-    sol = optx.root_find(
-        lambda lam, args: fn(lam, args),
-        optx.Bisection(rtol=1e-8, atol=1e-8, flip=False),
-        (lam_lo + 1) / 2,
-        options=dict(lower=lam_lo, upper=jnp.ones((), dtype)),
-        max_steps=128,
-        throw=False,
-    )
-    bisection_ok = sol.result == optx.RESULTS.successful
-    ell = sol.value * upper_safe
+    lower_safe = jnp.where(safe, lower, 0.5)
+
+    def halve(_, bracket):
+        lo, hi = bracket
+        mid = lo + (hi - lo) / 2
+        below = mean_force_c(mid, root_tau, root_w)[0] < 0
+        return jnp.where(below, mid, lo), jnp.where(below, hi, mid)
+
+    lo, hi = jax.lax.fori_loop(0, 32, halve, (lower_safe, upper_safe))
+    ell = lo + (hi - lo) / 2  # no gradient: the Newton steps below carry it
+    bisection_ok = safe
 
     # 3. Newton on G(ell) = V(q0 + s ell) - V(q0) = ell * mean force, G' = s V'(q1):
-    #    quadratic convergence from 1e-8 to rounding in two or three steps.
+    #    quadratic convergence to rounding in two or three steps.
     def newton(ell, _):
         g, _ = mean_force(ell, root_tau, root_w)
         slope = s * dV(q0 + s * ell)
         new = ell - ell * g / jnp.where(slope != 0, slope, 1.0)
-        new = jnp.clip(new, lower, upper_safe)
-        return jnp.where(jnp.isfinite(new), new, ell), None
+        # Stay in the bracket (a where, not a clip: the root may sit on a grid point,
+        # and a clip there would zero the derivative).
+        inside = jnp.isfinite(new) & (new >= lower) & (new <= upper_safe)
+        return jnp.where(inside, new, ell), None
 
     ell, _ = jax.lax.scan(newton, ell, None, length=3)
     g_end, g_abs = mean_force(ell, root_tau, root_w)
@@ -352,6 +359,13 @@ def _period_one(L, q0, rtol, nodes: int, inner_nodes: int):
         jnp.where(ok, q1, nan),
         jnp.where(ok, estimate, nan),
     )
+
+
+@eqx.filter_jit
+def _periods(L, flat, rtol, nodes, inner_nodes):
+    # One compiled program per (L, shape, nodes): L is a static argument (hashed by
+    # identity), so repeated calls with the same Lagrangian do not recompile.
+    return jax.vmap(lambda x: _period_one(L, x, rtol, nodes, inner_nodes))(flat)
 
 
 def quadrature_period(
@@ -454,9 +468,7 @@ def quadrature_period(
         )
 
     flat = jnp.ravel(q0)
-    T, status, q1, est = jax.vmap(
-        lambda x: _period_one(L, x, rtol, nodes, inner_nodes)
-    )(flat)
+    T, status, q1, est = _periods(L, flat, rtol, nodes, inner_nodes)
     result = QuadratureResult(
         periods=T.reshape(q0.shape),
         status=status.reshape(q0.shape),
