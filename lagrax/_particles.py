@@ -88,6 +88,8 @@ def _as_masses(masses):
             f"got {describe(masses)}."
         )
     try:
+        if isinstance(masses, list | tuple):
+            masses = jnp.asarray(masses)
         dtype = jnp.result_type(masses)
     except TypeError as e:
         raise TypeError(
@@ -105,7 +107,9 @@ def _as_masses(masses):
             f"(N,) with N >= 1; got shape {masses.shape}. For one particle write "
             "`jnp.array([m])`."
         )
-    if is_concrete(masses) and not bool(jnp.all(jnp.isfinite(masses) & (masses > 0))):
+    # numpy, not jnp: under `jit` a jnp op on a concrete closure constant is a tracer.
+    values = np.asarray(masses) if is_concrete(masses) else None
+    if values is not None and not np.all(np.isfinite(values) & (values > 0)):
         raise ValueError(
             f"`masses` must be positive and finite; got {np.asarray(masses)!r}."
         )
@@ -309,7 +313,7 @@ def _constraint_values(constraints, r, t):
 
     values = f(r)
     # ∂f/∂r, (k, dN): a check, not the hot path, so the Jacobian is fine here.
-    jac = jax.jacfwd(f)(r).reshape(values.shape[0], -1)
+    jac = jax.jacfwd(f)(r).reshape(values.shape[0], r.size)
     return values, jac
 
 

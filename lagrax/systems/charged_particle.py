@@ -66,7 +66,11 @@ def exact_trajectory(
     dtype = jnp.result_type(q0, qdot0, float)
     Bv = _field(B, dtype)
     Ev = _field(E, dtype)
-    t = jnp.asarray(t, dtype=dtype)[..., None]
+    t = jnp.asarray(t, dtype=dtype)
+    # Vectors broadcast against t explicitly (fine under rank_promotion="raise").
+    lead = (1,) * t.ndim
+    vec = lambda x: jnp.reshape(x, lead + (3,))
+    t = t[..., None]
     normB = jnp.linalg.norm(Bv)
     b = Bv / normB
     Omega = charge * normB / m
@@ -78,6 +82,7 @@ def exact_trajectory(
     s, c = jnp.sin(Omega * t), jnp.cos(Omega * t)
     # 1 - cos written as 2 sin² (no cancellation at small Ωt).
     one_minus_c = 2 * jnp.sin(Omega * t / 2) ** 2
+    q0, b, v_d, u0, w0 = map(vec, (q0, b, v_d, u0, w0))
     r = q0 + (v_par * t + 0.5 * a_par * t**2) * b + v_d * t
     r = r + (u0 * s + w0 * one_minus_c) / Omega
     v = (v_par + a_par * t) * b + v_d + u0 * c + w0 * s

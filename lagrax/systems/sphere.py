@@ -72,9 +72,11 @@ def great_circle(t, r0, v0):
 
     **Returns:** positions of shape `t.shape + (3,)`.
     """
-    t = jnp.asarray(t)[..., None]
+    t = jnp.asarray(t)
     omega = jnp.linalg.norm(v0) / jnp.linalg.norm(r0)
-    return r0 * jnp.cos(omega * t) + (v0 / omega) * jnp.sin(omega * t)
+    return jnp.multiply.outer(jnp.cos(omega * t), r0) + jnp.multiply.outer(
+        jnp.sin(omega * t), v0 / omega
+    )
 
 
 def arm_height(*, R=1.0, l=1.0):
