@@ -63,8 +63,10 @@ _STATUS = {
     SUCCESS: ("success", "success"),
     NOT_OSCILLATING: (
         "not_oscillating",
-        "does not oscillate: released at an equilibrium (zero acceleration), or no "
-        "turning point before t_max, or the coordinate ran away (|q| > 1e6 |q0|)",
+        "does not oscillate: released at an equilibrium (zero acceleration), or the "
+        "coordinate ran away (|q - q0| > 1e6 max(|q0|, 1); also what a path through a "
+        "coordinate singularity looks like, e.g. the cycloid in θ released near its "
+        "cusp sails through the other cusp), or no turning point before t_max",
     ),
     MAX_STEPS: (
         "max_steps",
@@ -134,12 +136,17 @@ def status_message(code) -> str:
 
 # ------------------------------------------------------------------ one lane, traced
 
-_ESCAPE = 1e6  # |q| beyond 1e6 |q0| means the motion is not a bounded oscillation
+# |q - q0| beyond 1e6 max(|q0|, 1) means the motion is not a bounded oscillation. (Not
+# 1e6 |q0|: released 1e-8 from the cycloid's cusp in θ, a normal swing is 1e8 |q0|.)
+_ESCAPE = 1e6
+_NO_LIMIT = 1e30
 
 
 def _energy(L, q, qdot, t):
+    """The Jacobi integral and the size of its two terms (for its rounding error)."""
     value, p = jax.value_and_grad(L, argnums=1)(q, qdot, t)
-    return jnp.dot(qdot, p) - value
+    kinetic = jnp.dot(qdot, p)
+    return kinetic - value, jnp.abs(kinetic) + jnp.abs(value)
 
 
 class _Lane(eqx.Module):
@@ -219,9 +226,13 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
     tau = jnp.sqrt(Qs / jnp.abs(a0s))
     Vs = Qs / tau
     As = Qs / tau**2
-    s_end = jnp.asarray(1e6, dtype) if t_max is None else t_max / tau
+    # No time limit by default: max_steps bounds the work, the escape event catches
+    # runaways, and a local time scale says little about the period (released near the
+    # cycloid's cusp in θ, tau is 1e-8 of it).
+    s_end = jnp.asarray(_NO_LIMIT, dtype) if t_max is None else t_max / tau
     s_end = jnp.where(valid, s_end, 0.0)
     sigma = jnp.sign(a0s)
+    escape = _ESCAPE * jnp.maximum(Qs, 1.0) / Qs
 
     def accel(s, x, v):
         qddot, _ = _accelerations(L, (q0 + Qs * x)[None], (Vs * v)[None], tau * s)
@@ -236,7 +247,7 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
         event = dfx.Event(
             (
                 lambda s, y, args, **kw: g(s, *y),
-                lambda s, y, args, **kw: jnp.abs(y[0]) > _ESCAPE,
+                lambda s, y, args, **kw: jnp.abs(y[0]) > escape,
             ),
             direction=(False, None),
         )
@@ -314,12 +325,12 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
 
     # Energy check where the solve stopped (normally a turning point).
     q_end, qdot_end, t_end = q0 + Qs * x_end, Vs * v_end, tau * s_last
-    h0 = _energy(L, q0[None], zero[None], zero)
-    h1 = _energy(L, q_end[None], qdot_end[None], t_end)
+    h0, size0 = _energy(L, q0[None], zero[None], zero)
+    h1, size1 = _energy(L, q_end[None], qdot_end[None], t_end)
     scale = jnp.abs(M0 * a0s) * Qs
     drift = jnp.abs(h1 - h0)
     tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
-    allowed = tol * scale + 1024 * eps * (jnp.abs(h0) + jnp.abs(h1))
+    allowed = tol * scale + 1024 * eps * (size0 + size1)
     drifted = ~(drift <= allowed)  # NaN energies count as drift
     # A singular or indefinite mass matrix where the solve stopped?
     _, (_, ok_end) = _accelerations(L, q_end[None], qdot_end[None], t_end)
@@ -454,7 +465,8 @@ def period(
         in $\sqrt{|q_0|/|\ddot q(q_0)|}$): small amplitudes keep relative accuracy.
     - `max_steps`: the most steps for one swing.
     - `t_max`: give up (status `not_oscillating`) if no turning point by then; default
-        $10^6\sqrt{|q_0|/|\ddot q(q_0)|}$.
+        no limit (`max_steps` bounds the work; a coordinate running away to
+        $|q - q_0| > 10^6 \max(|q_0|, 1)$ stops the solve as not oscillating).
     - `energy_tol`: the largest accepted energy drift between release and turning point,
         relative to $|M\ddot q|\,|q_0|$ at release; default $\sqrt{\text{rtol}}$.
     - `method`: `"half"`, `"full"` or `"quarter"`, see above.
