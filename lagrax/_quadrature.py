@@ -274,7 +274,8 @@ def _period_one(L, q0, rtol, nodes: int, inner_nodes: int):
         new = ell - ell * g / jnp.where(slope != 0, slope, 1.0)
         # Stay in the bracket (a where, not a clip: the root may sit on a grid point,
         # and a clip there would zero the derivative).
-        inside = jnp.isfinite(new) & (new >= lower) & (new <= upper_safe)
+        # A 1% margin: the root may also sit exactly on the bracket's end.
+        inside = jnp.isfinite(new) & (new >= 0.99 * lower) & (new <= 1.01 * upper_safe)
         return jnp.where(inside, new, ell), None
 
     ell, _ = jax.lax.scan(newton, ell, None, length=3)
