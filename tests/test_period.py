@@ -1,0 +1,257 @@
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.optimize import brentq
+
+import lagrax
+from lagrax.systems import cycloid, pendulum
+
+
+# One Lagrangian object per system, shared by all tests: the compiled sweep is cached
+# per (L, solver, method, chunk_size), so sharing keeps the suite's compile time down.
+PENDULUM = pendulum.lagrangian()
+CYCLOID_U = cycloid.lagrangian_u()
+CYCLOID_THETA = cycloid.lagrangian()
+
+
+def asymmetric(q, qdot, t):
+    # V = x²/2 + x³/3: a well at 0, a hump at x = -1 (V = 1/6), no mirror symmetry.
+    x = q[0]
+    return 0.5 * qdot[0] ** 2 - (0.5 * x**2 + x**3 / 3)
+
+
+def asymmetric_reference(x0):
+    """T = 2∫ dx / sqrt(2(E - V)) between the turning points, by scipy quad."""
+    V = lambda x: 0.5 * x * x + x**3 / 3
+    E = V(x0)
+    x1 = brentq(lambda x: V(x) - E, *((1e-12, 2.0) if x0 < 0 else (-0.9999, -1e-12)))
+    lo, hi = sorted([x0, x1])
+    # x = lo + (hi - lo) sin²φ removes both endpoint singularities.
+    f = lambda p: (
+        2
+        * (hi - lo)
+        * np.sin(p)
+        * np.cos(p)
+        / np.sqrt(2 * (E - V(lo + (hi - lo) * np.sin(p) ** 2)))
+    )
+    return 2 * quad(f, 0, np.pi / 2, epsabs=0, epsrel=1e-13, limit=400)[0]
+
+
+def test_pendulum_accuracy_256():
+    a = jnp.linspace(1e-3, jnp.pi - 1e-3, 256)
+    res = lagrax.sweep_periods(PENDULUM, a, method="quarter")
+    assert np.all(np.asarray(res.status) == 0)
+    err = np.abs(np.asarray(res.periods / pendulum.pendulum_period(a)) - 1)
+    assert err.max() <= 1e-12
+    assert 0 < float(res.useful_fraction) <= 1
+
+
+@pytest.mark.slow
+def test_pendulum_accuracy_4096():
+    a = jnp.linspace(1e-3, jnp.pi - 1e-3, 4096)
+    res = lagrax.sweep_periods(PENDULUM, a, method="quarter")
+    assert np.all(np.asarray(res.status) == 0)
+    err = np.abs(np.asarray(res.periods / pendulum.pendulum_period(a)) - 1)
+    assert err.max() <= 1e-12
+    assert float(res.useful_fraction) >= 0.85
+
+
+@pytest.mark.slow
+def test_pendulum_half_period_accuracy_benchmark_range():
+    # "half" integrates past the bottom, where one rounding of θ̇ costs ~4δE/δ² of T:
+    # fine to 1e-12 on the benchmark's 0.01–3.1 rad, not at π − 1e-3 (see `period`).
+    a = jnp.linspace(0.01, 3.1, 512)
+    res = lagrax.sweep_periods(PENDULUM, a, rtol=1e-14, atol=1e-14)
+    err = np.abs(np.asarray(res.periods / pendulum.pendulum_period(a)) - 1)
+    assert err.max() <= 1e-12
+
+
+def test_cycloid_to_the_cusp_in_u():
+    # Amplitude a = π − θ0 (rolling angle from the bottom), u0 = cos(θ0/2) = sin(a/2);
+    # the last one is released exactly at the cusp, u0 = 1.
+    amplitude = jnp.linspace(1e-3, jnp.pi, 256)
+    u0 = jnp.sin(amplitude / 2)
+    assert u0[-1] == 1.0
+    res = lagrax.sweep_periods(CYCLOID_U, u0)
+    assert np.all(np.asarray(res.status) == 0)
+    err = np.abs(np.asarray(res.periods) / float(cycloid.cycloid_period()) - 1)
+    assert err.max() <= 1e-12
+
+
+def test_cycloid_theta_near_cusp_is_a_status_not_a_number():
+    theta0 = jnp.array([0.0, 1e-12, 1e-8, 0.5, jnp.pi / 2])
+    res = lagrax.sweep_periods(CYCLOID_THETA, theta0, max_steps=2048)
+    status = np.asarray(res.status)
+    # At the cusp the mass matrix is exactly singular.
+    assert status[0] == lagrax._period.SINGULAR_MASS
+    # Closer than float64 can turn around: a failure, never a number.
+    assert np.all(status[1:3] != 0)
+    assert np.all(np.isnan(np.asarray(res.periods[:3])))
+    # Where the θ form is regular it agrees with 4π√(R/g).
+    assert np.all(status[3:] == 0)
+    np.testing.assert_allclose(res.periods[3:], 4 * np.pi, rtol=1e-11)
+
+
+def test_asymmetric_well_against_quadrature():
+    x0 = np.array([-0.9, -0.5, -0.1, 0.2, 0.45])
+    res = lagrax.sweep_periods(asymmetric, jnp.asarray(x0))
+    assert np.all(np.asarray(res.status) == 0)
+    ref = np.array([asymmetric_reference(x) for x in x0])
+    np.testing.assert_allclose(res.periods, ref, rtol=1e-11)
+    # Released on both sides of the same orbit: the same period.
+    V = lambda x: 0.5 * x * x + x**3 / 3
+    partner = brentq(lambda x: V(x) - V(-0.5), 1e-9, 2.0)
+    both = lagrax.sweep_periods(asymmetric, jnp.array([-0.5, partner]))
+    np.testing.assert_allclose(both.periods[0], both.periods[1], rtol=1e-12)
+
+
+@pytest.mark.slow
+def test_full_and_quarter_methods():
+    x0 = jnp.array([-0.9, -0.5, 0.2, 0.45])
+    half = lagrax.sweep_periods(asymmetric, x0)
+    full = lagrax.sweep_periods(asymmetric, x0, method="full")
+    np.testing.assert_allclose(full.periods, half.periods, rtol=1e-11)
+    # "quarter" assumes mirror symmetry: visibly wrong for this well, as documented.
+    quarter = lagrax.sweep_periods(asymmetric, x0, method="quarter")
+    assert np.max(np.abs(np.asarray(quarter.periods / half.periods) - 1)) > 1e-3
+
+
+def test_status_codes_at_release():
+    q0 = jnp.array([0.0, jnp.nan, 1.0, 0.5])
+    res = lagrax.sweep_periods(PENDULUM, q0, method="quarter")
+    assert list(np.asarray(res.status)) == [
+        lagrax._period.NOT_OSCILLATING,  # released at the equilibrium
+        lagrax._period.NONFINITE_INPUT,
+        0,
+        0,
+    ]
+    assert np.all(np.isnan(np.asarray(res.periods[:2])))
+
+
+@pytest.mark.slow
+def test_status_codes_along_the_way():
+    inverted = lambda q, qdot, t: 0.5 * qdot[0] ** 2 + 0.5 * q[0] ** 2
+    res = lagrax.sweep_periods(inverted, jnp.array([1.0, 0.5]))
+    assert list(np.asarray(res.status)) == [lagrax._period.NOT_OSCILLATING] * 2
+    few = lagrax.sweep_periods(PENDULUM, jnp.array([1.0, 2.0]), max_steps=4)
+    assert np.all(np.asarray(few.status) == lagrax._period.MAX_STEPS)
+    assert np.all(np.isnan(np.asarray(few.periods)))
+    # A spring stiffening in time does not conserve energy: the check catches it.
+    stiffening = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - 0.5 * (1 + 0.1 * t) * q[0] ** 2
+    res = lagrax.sweep_periods(stiffening, jnp.array([1.0, 2.0]))
+    assert np.all(np.asarray(res.status) == lagrax._period.ENERGY_DRIFT)
+
+
+def test_status_messages():
+    codes = lagrax.STATUS_CODES
+    assert codes[0] == "success" and len(codes) == 8
+    for code in codes:
+        assert isinstance(lagrax.status_message(code), str)
+    assert "singular" in lagrax.status_message(3)
+    with pytest.raises(ValueError, match="code"):
+        lagrax.status_message(99)
+
+
+def test_failed_lane_does_not_change_the_others():
+    a = jnp.linspace(0.1, 3.0, 300)
+    clean = lagrax.sweep_periods(PENDULUM, a, method="quarter")
+    spoiled = lagrax.sweep_periods(
+        PENDULUM,
+        jnp.concatenate([a[:150], jnp.array([jnp.nan, 0.0]), a[150:]]),
+        method="quarter",
+    )
+    keep = np.r_[0:150, 152:302]
+    np.testing.assert_array_equal(
+        np.asarray(spoiled.periods)[keep], np.asarray(clean.periods)
+    )
+    assert list(np.asarray(spoiled.status)[150:152]) == [7, 1]
+
+
+def test_chunk_size_and_order_independence():
+    a = jax.random.uniform(jax.random.key(0), (200,), minval=0.1, maxval=3.0)
+    big = lagrax.sweep_periods(PENDULUM, a, method="quarter")
+    small = lagrax.sweep_periods(PENDULUM, a, method="quarter", chunk_size=64)
+    np.testing.assert_allclose(small.periods, big.periods, rtol=1e-15)
+    assert big.lane_steps_executed >= big.lane_steps_useful
+    # The result comes back in the input order.
+    np.testing.assert_allclose(
+        big.periods, pendulum.pendulum_period(a), rtol=1e-12, atol=0
+    )
+
+
+def test_no_recompilation_when_amplitudes_or_tolerances_change():
+    compiles = []
+
+    def listener(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(event)
+
+    a = jnp.linspace(0.2, 2.0, 40)
+    b = jax.block_until_ready(a * 1.1)  # outside the window: `*` compiles too
+    lagrax.sweep_periods(PENDULUM, a, method="quarter", rtol=1e-10, atol=1e-10)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        res = lagrax.sweep_periods(
+            PENDULUM, b, method="quarter", rtol=1e-11, atol=1e-12
+        )
+        jax.block_until_ready(res)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert compiles == []
+    np.testing.assert_allclose(res.periods, pendulum.pendulum_period(b), rtol=1e-9)
+
+
+@pytest.mark.slow  # reverse mode through the solve: ~40 s of compile on 2 cores
+def test_grad_of_period_matches_exact_derivative():
+    a = jnp.array([0.3, 1.0, 2.5])
+    grad = jax.grad(
+        lambda x: lagrax.sweep_periods(PENDULUM, x, method="quarter").periods.sum()
+    )(a)
+    exact = jax.vmap(jax.grad(pendulum.pendulum_period))(a)
+    np.testing.assert_allclose(grad, exact, rtol=1e-10)
+
+
+@pytest.mark.slow
+def test_grad_with_respect_to_parameters_and_cycloid():
+    dT_dg = jax.grad(lambda g: lagrax.period(pendulum.lagrangian(g=g), 1.0))(2.0)
+    exact = jax.grad(lambda g: pendulum.pendulum_period(1.0, g=g))(2.0)
+    np.testing.assert_allclose(dT_dg, exact, rtol=1e-10)
+    dT_da = jax.grad(lambda a: lagrax.period(PENDULUM, a, method="quarter"))(1.0)
+    np.testing.assert_allclose(
+        dT_da, jax.grad(pendulum.pendulum_period)(1.0), rtol=1e-10
+    )
+    for u0 in (0.3, 0.9, 1.0):
+        assert abs(float(jax.grad(lambda u: lagrax.period(CYCLOID_U, u))(u0))) < 1e-10
+
+
+@pytest.mark.slow
+def test_period_eager_and_jit():
+    T = lagrax.period(PENDULUM, 1.0)
+    np.testing.assert_allclose(T, pendulum.pendulum_period(1.0), rtol=1e-12)
+    Tj = jax.jit(lambda a: lagrax.period(PENDULUM, a))(jnp.array([1.0]))
+    np.testing.assert_allclose(Tj, T, rtol=1e-15)
+    with pytest.raises(RuntimeError, match="not_oscillating"):
+        lagrax.period(PENDULUM, 0.0)
+    assert np.isnan(lagrax.period(PENDULUM, 0.0, throw=False))
+
+
+def test_bad_arguments():
+    with pytest.raises(TypeError, match="`L`"):
+        lagrax.sweep_periods("pendulum", jnp.array([1.0]))
+    with pytest.raises(ValueError, match="`q0`"):
+        lagrax.sweep_periods(PENDULUM, jnp.ones((2, 2)))
+    with pytest.raises(TypeError, match="`q0`"):
+        lagrax.sweep_periods(PENDULUM, jnp.array([1, 2]))
+    with pytest.raises(ValueError, match="`rtol`"):
+        lagrax.sweep_periods(PENDULUM, jnp.array([1.0]), rtol=-1.0)
+    with pytest.raises(ValueError, match="`method`"):
+        lagrax.sweep_periods(PENDULUM, jnp.array([1.0]), method="eighth")
+    with pytest.raises(ValueError, match="`chunk_size`"):
+        lagrax.sweep_periods(PENDULUM, jnp.array([1.0]), chunk_size=0)
+    with pytest.raises(TypeError, match="`solver`"):
+        lagrax.sweep_periods(PENDULUM, jnp.array([1.0]), solver=dfx.Euler())
+    with pytest.raises(ValueError, match="`q0`"):
+        lagrax.period(PENDULUM, jnp.array([1.0, 2.0]))
