@@ -1,0 +1,42 @@
+import os
+import subprocess
+import sys
+import textwrap
+
+
+SCRIPT = textwrap.dedent(
+    """
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    import lagrax
+    from lagrax.systems import pendulum
+    assert len(jax.devices()) == 4, jax.devices()
+    L = pendulum.lagrangian()
+    a = jnp.linspace(0.05, 3.0, 50)
+    one = lagrax.sweep_periods(L, a, method="quarter", chunk_size=8,
+                               devices=jax.devices()[:1])
+    four = lagrax.sweep_periods(L, a, method="quarter", chunk_size=8)
+    assert four.num_devices == 4 and one.num_devices == 1
+    np.testing.assert_array_equal(np.asarray(four.status), 0)
+    np.testing.assert_allclose(four.periods, one.periods, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(four.periods, pendulum.pendulum_period(a), rtol=1e-12)
+    print("OK", float(jnp.max(jnp.abs(four.periods / one.periods - 1))))
+    """
+)
+
+
+def test_sharded_over_four_cpu_devices_matches_one_device():
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+    ).strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    proc = subprocess.run(
+        [sys.executable, "-c", SCRIPT],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "OK" in proc.stdout
