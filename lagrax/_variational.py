@@ -149,8 +149,11 @@ class VariationalMidpoint(dfx.AbstractSolver):
     - `rtol`, `atol`: tolerances of the Newton iteration on the displacement
         $q_1 - q_0$ and the velocity $\dot q_1$ (in their units, as diffrax's), and
         `atol` on the residual relative to the momenta.
-        Default: $\varepsilon^{3/4}$ of the state's dtype (Newton converges
-        quadratically, so the solution is then accurate to round-off).
+        Default: $\sqrt\varepsilon$ of the state's dtype. Newton converges
+        quadratically and the last update is applied after the test passes, so the
+        solution is accurate to ~$\varepsilon$ all the same; a tighter test can fail
+        on round-off alone (a stiff spring's $k(r-1)$ makes $\dot q$ uncertain by
+        $h\varepsilon k/m$).
     - `max_newton_steps`: the most Newton iterations per step (default 16).
     - `linear_solver`: the lineax solver for the Newton systems (default `lineax.LU()`;
         the Jacobian is not symmetric in general).
@@ -198,7 +201,7 @@ class VariationalMidpoint(dfx.AbstractSolver):
         return p0, jnp.array(0, dtype=jnp.int32)
 
     def _root_finder(self, dtype):
-        tol = float(jnp.finfo(dtype).eps) ** 0.75
+        tol = float(jnp.finfo(dtype).eps) ** 0.5
         rtol = tol if self.rtol is None else self.rtol
         atol = tol if self.atol is None else self.atol
         # Cauchy termination: both the Newton update (in the units of q and qdot, as
@@ -221,14 +224,19 @@ class VariationalMidpoint(dfx.AbstractSolver):
         guess = jnp.concatenate([h * qdot0, qdot0])
         # The residuals are momenta, in whatever units L has. Optimistix stops when
         # the update is small (in the units of dq and qdot1) AND |residual| < atol, so
-        # the residual is put in the units of the unknowns: divided by diag(M)/h (the
-        # Jacobian of the first equation, to leading order) and by diag(M) (the second
-        # one's), that one made relative to the velocities. In momentum units round-off
-        # alone could fail the test: a stiff spring k(r - 1) carries an error of eps*k.
+        # the residual is put in the units of the unknowns: divided by the diagonal
+        # of its Jacobian, |M|/h + (h/4)|d²L/dq²| for the first equation and |M| for
+        # the second (made relative to the velocities). In momentum units round-off
+        # alone could fail the test: a stiff spring k(r - 1) carries an error of
+        # eps*k, which only the (h/4)k term of the Jacobian scales away.
         m = jnp.abs(jnp.diag(jax.jacfwd(_momenta, argnums=2)(L, q0, qdot0, s0)))
-        m = jnp.maximum(m, jnp.finfo(q0.dtype).tiny)
+        dLdq = jax.grad(L, argnums=0)
+        kq = jnp.abs(jnp.diag(jax.jacfwd(dLdq, argnums=0)(q0, qdot0, s0)))
+        tiny = jnp.finfo(q0.dtype).tiny
+        m = jnp.maximum(m, tiny)
+        mq = jnp.maximum(m / jnp.abs(h) + 0.25 * jnp.abs(h) * kq, tiny)
         vscale = 1 + jnp.max(jnp.abs(qdot0))
-        scale = jnp.concatenate([m / jnp.abs(h), m * vscale])
+        scale = jnp.concatenate([mq, m * vscale])
         scale = jax.lax.stop_gradient(scale)
 
         def residual(z, _):
@@ -265,7 +273,7 @@ class VariationalMidpoint(dfx.AbstractSolver):
 
 VariationalMidpoint.__init__.__doc__ = """**Arguments:**
 
-- `rtol`, `atol`: Newton tolerances (default $\\varepsilon^{3/4}$ of the dtype).
+- `rtol`, `atol`: Newton tolerances (default $\\sqrt\\varepsilon$ of the dtype).
 - `max_newton_steps`: the most Newton iterations per step (default 16).
 - `linear_solver`: a `lineax` solver for the Newton systems (default `lineax.LU()`).
 """
