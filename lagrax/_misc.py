@@ -97,5 +97,6 @@ def as_time(t, name: str, dtype):
 
 def check_finite(x, name: str):
     """Raises if `x` is concrete and has a NaN or infinite entry."""
-    if is_concrete(x) and not bool(jnp.all(jnp.isfinite(x))):
+    # numpy, not jnp: inside a jit trace a jnp op on a concrete array is a tracer.
+    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
         raise ValueError(f"`{name}` must be finite; got {np.asarray(x)!r}.")

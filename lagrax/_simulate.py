@@ -215,7 +215,7 @@ def simulate(
             stepsize_controller = dfx.ConstantStepSize()
     if dt0 is not None:
         dt0 = as_time(dt0, "dt0", dtype)
-        if is_concrete(dt0, t0, t1) and float(dt0) * float(t1 - t0) < 0:
+        if is_concrete(dt0, t0, t1) and float(dt0) * (float(t1) - float(t0)) < 0:
             raise ValueError(
                 f"`dt0` must have the sign of t1 - t0; got dt0={float(dt0)} with "
                 f"t0={float(t0)}, t1={float(t1)}."
