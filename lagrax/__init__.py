@@ -15,11 +15,11 @@ from ._particles import (
     particle_lagrangian as particle_lagrangian,
 )
 from ._period import (
-    STATUS_CODES as STATUS_CODES,
-    SweepResult as SweepResult,
     period as period,
+    STATUS_CODES as STATUS_CODES,
     status_message as status_message,
     sweep_periods as sweep_periods,
+    SweepResult as SweepResult,
 )
 from ._quadrature import (
     quadrature_period as quadrature_period,
@@ -27,11 +27,9 @@ from ._quadrature import (
     QuadratureResult as QuadratureResult,
 )
 from ._simulate import simulate as simulate, vector_field as vector_field
+from ._term import LagrangianTerm as LagrangianTerm
 from ._transform import reparametrize as reparametrize
-from ._variational import (
-    LagrangianTerm as LagrangianTerm,
-    VariationalMidpoint as VariationalMidpoint,
-)
+from ._variational import VariationalMidpoint as VariationalMidpoint
 
 
 __version__ = importlib.metadata.version("lagrax")

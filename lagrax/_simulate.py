@@ -10,15 +10,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
-from ._mechanics import _accelerations, _prepare, accelerations
+from ._mechanics import _prepare, accelerations
 from ._misc import (
     as_real_array,
     as_state,
     as_time,
     check_callable,
     check_finite,
+    describe,
     is_concrete,
 )
+from ._term import _LagrangeVectorField, LagrangianTerm
 
 
 def vector_field(
@@ -54,20 +56,7 @@ def vector_field(
     check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
     if force is not None:
         check_callable(force, "force", "a function force(q, qdot, t) -> Q")
-    return _LagrangeField(L, force)
-
-
-class _LagrangeField(eqx.Module):
-    # A Module rather than a closure: two fields built from the same `L` compare equal,
-    # so `diffeqsolve`'s filter_jit cache is hit on every eager `simulate` call instead
-    # of recompiling (a fresh closure would hash differently each time).
-    L: Callable
-    force: Callable | None
-
-    def __call__(self, t, y, args):
-        q, qdot = y
-        qddot, _ = _accelerations(self.L, q, qdot, t, self.force)
-        return qdot, qddot
+    return _LagrangeVectorField(L, force)
 
 
 def _check_tolerance(x, name: str, dtype):
@@ -190,16 +179,25 @@ def simulate(
     dtype = q0.dtype
     t0 = as_time(t0, "t0", dtype)
     t1 = as_time(t1, "t1", dtype)
-    q0, qdot0, t0 = _prepare(L, q0, qdot0, t0, force)
+    q0, qdot0, t0 = _prepare(L, q0, qdot0, t0, force, names=("q0", "qdot0", "t0"))
     check_finite(q0, "q0")
     check_finite(qdot0, "qdot0")
     check_finite(t0, "t0")
     check_finite(t1, "t1")
     if not isinstance(solver, dfx.AbstractSolver):
-        raise TypeError(
-            f"`solver` must be a diffrax solver; got {type(solver).__name__}."
-        )
-    if not isinstance(max_steps, int) or max_steps <= 0:
+        raise TypeError(f"`solver` must be a diffrax solver; got {describe(solver)}.")
+    for value, name, cls in (
+        (saveat, "saveat", dfx.SaveAt),
+        (stepsize_controller, "stepsize_controller", dfx.AbstractStepSizeController),
+        (event, "event", dfx.Event),
+        (adjoint, "adjoint", dfx.AbstractAdjoint),
+        (progress_meter, "progress_meter", dfx.AbstractProgressMeter),
+    ):
+        if value is not None and not isinstance(value, cls):
+            raise TypeError(
+                f"`{name}` must be a `diffrax.{cls.__name__}`; got {describe(value)}."
+            )
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps <= 0:
         raise ValueError(f"`max_steps` must be a positive int; got {max_steps!r}.")
     if stepsize_controller is None:
         if isinstance(solver, dfx.AbstractAdaptiveSolver):
@@ -209,12 +207,15 @@ def simulate(
         else:
             if dt0 is None:
                 raise ValueError(
-                    f"`dt0` is required with the fixed-step solver "
+                    f"`dt0` must be given with the fixed-step solver "
                     f"{type(solver).__name__}; got dt0=None."
                 )
             stepsize_controller = dfx.ConstantStepSize()
     if dt0 is not None:
         dt0 = as_time(dt0, "dt0", dtype)
+        check_finite(dt0, "dt0")
+        if is_concrete(dt0) and float(dt0) == 0:
+            raise ValueError("`dt0` must be a nonzero initial step; got dt0=0.")
         if is_concrete(dt0, t0, t1) and float(dt0) * (float(t1) - float(t0)) < 0:
             raise ValueError(
                 f"`dt0` must have the sign of t1 - t0; got dt0={float(dt0)} with "
@@ -226,7 +227,7 @@ def simulate(
         saveat = dfx.SaveAt(t1=True)
     eager = is_concrete(q0, qdot0, t0, t1, dt0)
     sol = dfx.diffeqsolve(
-        dfx.ODETerm(vector_field(L, force=force)),
+        LagrangianTerm(L, force=force),
         solver,
         t0,
         t1,

@@ -11,56 +11,7 @@ import lineax as lx
 import optimistix as optx
 from diffrax._term import WrapTerm  # not public; diffeqsolve wraps every term in it
 
-from ._custom_types import GeneralizedForce, Lagrangian
-from ._mechanics import _accelerations
-from ._misc import check_callable
-
-
-class _LagrangeVectorField(eqx.Module):
-    # What `lagrax.vector_field(L)` returns, as a Module rather than a fresh closure:
-    # two terms built from the same `L` then compare equal, so `diffeqsolve` (an
-    # `eqx.filter_jit`) reuses its compilation instead of recompiling on every call.
-    L: Lagrangian
-    force: GeneralizedForce | None
-
-    def __call__(self, t, y, args):
-        q, qdot = y
-        qddot, _ = _accelerations(self.L, q, qdot, t, self.force)
-        return qdot, qddot
-
-
-class LagrangianTerm(dfx.ODETerm):
-    r"""The term of Lagrange's equations, carrying the Lagrangian itself.
-
-    It is a `diffrax.ODETerm` for the first-order system
-    $\frac{d}{dt}(q, \dot q) = (\dot q, \ddot q)$ (so every diffrax solver accepts it),
-    and it also keeps `L` and `force`, which `lagrax.VariationalMidpoint` needs: a
-    variational integrator is built from the Lagrangian, not from the vector field.
-
-    **Arguments:**
-
-    - `L`: the Lagrangian `L(q, qdot, t) -> scalar`.
-    - `force`: optional generalized non-conservative force `force(q, qdot, t) -> Q`.
-
-    **Example:**
-
-    ```python
-    term = lagrax.LagrangianTerm(L)
-    sol = diffrax.diffeqsolve(term, lagrax.VariationalMidpoint(), t0, t1, dt0,
-                              (q0, qdot0))
-    ```
-    """
-
-    L: Lagrangian
-    force: GeneralizedForce | None
-
-    def __init__(self, L: Lagrangian, force: GeneralizedForce | None = None):
-        check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
-        if force is not None:
-            check_callable(force, "force", "a function force(q, qdot, t) -> Q")
-        self.L = L
-        self.force = force
-        self.vector_field = _LagrangeVectorField(L, force)
+from ._term import LagrangianTerm
 
 
 def _unwrap(term) -> tuple[LagrangianTerm, jax.Array]:
