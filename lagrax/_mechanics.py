@@ -19,12 +19,43 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
-from ._misc import as_state, as_time, check_callable, describe, is_concrete
+from ._misc import (
+    as_state,
+    as_time,
+    check_callable,
+    check_finite,
+    describe,
+    is_concrete,
+)
+
+
+def _call_user(f, name, signature, *args):
+    """`jax.eval_shape(f, *args)`, with a user error in `f` re-raised naming `f`."""
+    try:
+        return jax.eval_shape(f, *args)
+    except (TypeError, ValueError) as e:
+        if str(e).startswith("`"):  # already a lagrax message naming its argument
+            raise
+        shapes = ", ".join(
+            f"{jnp.dtype(a.dtype).name}{list(a.shape)}" if hasattr(a, "shape") else "?"
+            for a in args
+        )
+        if isinstance(e, jax.errors.ConcretizationTypeError):
+            why = (
+                "Python control flow or float() on a value that depends on the "
+                "arguments (use jnp.where or jax.lax.cond)"
+            )
+        else:
+            why = type(e).__name__
+        raise (TypeError if isinstance(e, TypeError) else ValueError)(
+            f"`{name}` must be a JAX-traceable function {signature}; calling it "
+            f"with arguments {shapes} failed: {why}: {str(e).splitlines()[0]}"
+        ) from e
 
 
 def _check_lagrangian(L, q, qdot, t):
     check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
-    out = jax.eval_shape(L, q, qdot, t)
+    out = _call_user(L, "L", "L(q, qdot, t) -> scalar", q, qdot, t)
     shape = getattr(out, "shape", None)
     dtype = getattr(out, "dtype", None)
     if shape != () or dtype is None or not jnp.issubdtype(dtype, jnp.floating):
@@ -41,7 +72,7 @@ def _check_lagrangian(L, q, qdot, t):
 
 def _check_force(force, q, qdot, t):
     check_callable(force, "force", "a function force(q, qdot, t) -> Q of shape (n,)")
-    out = jax.eval_shape(force, q, qdot, t)
+    out = _call_user(force, "force", "force(q, qdot, t) -> Q", q, qdot, t)
     if getattr(out, "shape", None) != q.shape or not jnp.issubdtype(
         out.dtype, jnp.floating
     ):
@@ -52,9 +83,11 @@ def _check_force(force, q, qdot, t):
         )
 
 
-def _prepare(L, q, qdot, t, force=None):
-    q, qdot = as_state(q, qdot)
-    t = as_time(t, "t", q.dtype)
+def _prepare(L, q, qdot, t, force=None, names=("q", "qdot", "t")):
+    q, qdot = as_state(q, qdot, names[0], names[1])
+    t = as_time(t, names[2], q.dtype)
+    for x, name in zip((q, qdot, t), names):
+        check_finite(x, name)  # eager only: a NaN state is a user error, not M's
     _check_lagrangian(L, q, qdot, t)
     if force is not None:
         _check_force(force, q, qdot, t)

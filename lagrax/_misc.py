@@ -19,6 +19,8 @@ def is_concrete(*xs) -> bool:
 
 def describe(x) -> str:
     """A short description of what was received, for error messages."""
+    if isinstance(x, type):
+        return f"the class {x.__name__} (pass an instance, e.g. {x.__name__}())"
     if callable(x) and not hasattr(x, "shape"):
         return f"callable {getattr(x, '__name__', type(x).__name__)}"
     shape = getattr(x, "shape", None)
@@ -99,4 +101,6 @@ def check_finite(x, name: str):
     """Raises if `x` is concrete and has a NaN or infinite entry."""
     # numpy, not jnp: inside a jit trace a jnp op on a concrete array is a tracer.
     if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
-        raise ValueError(f"`{name}` must be finite; got {np.asarray(x)!r}.")
+        raise ValueError(
+            f"`{name}` must be finite; got {np.asarray(x)!r} (an entry is not finite)."
+        )

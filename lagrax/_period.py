@@ -45,7 +45,7 @@ from jaxtyping import Array, Float, Int
 
 from ._custom_types import Lagrangian, RealScalarLike
 from ._mechanics import _accelerations, _check_lagrangian
-from ._misc import as_real_array, check_callable, is_concrete
+from ._misc import as_real_array, check_callable, check_finite, is_concrete
 
 
 # --------------------------------------------------------------------------- statuses
@@ -125,8 +125,11 @@ def status_message(code) -> str:
     """  # noqa: E501
     try:
         key = int(code)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"`code` must be an integer status code; got {code!r}.") from e
+        integral = key == code
+    except (TypeError, ValueError):
+        integral = False
+    if not integral:
+        raise ValueError(f"`code` must be an integer status code; got {code!r}.")
     if key not in _STATUS:
         raise ValueError(
             f"`code` must be one of the status codes {sorted(_STATUS)}; got {key}."
@@ -356,6 +359,12 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
     return _Lane(T, status.astype(jnp.int32), steps.astype(jnp.int32))
 
 
+class _NoPeriodError(ValueError, RuntimeError):
+    # No period at this release point: a bad `q0` (ValueError), and a failed status
+    # like the others `period` raises as RuntimeError.
+    pass
+
+
 def _check_method(method):
     if method not in _METHODS:
         raise ValueError(f"`method` must be one of {sorted(_METHODS)}; got {method!r}.")
@@ -480,6 +489,9 @@ def period(
     **Raises:**
 
     - `TypeError`/`ValueError`: bad arguments (the message names the argument).
+    - `ValueError` (eager): `q0` is not finite, or L does not oscillate from it
+        (status `not_oscillating`, `singular_mass`; the error is also a
+        `RuntimeError`).
     - `RuntimeError` (eager) or an equinox runtime error (traced), with the status
         message (see `status_message`), when the period cannot be trusted.
 
@@ -497,6 +509,8 @@ def period(
             f"freedom; got shape {q0.shape}. For many amplitudes use sweep_periods."
         )
     q0 = q0.reshape(())
+    if throw:
+        check_finite(q0, "q0")
     dtype = q0.dtype
     _check_L(L, dtype)
     _check_solver(solver)
@@ -518,6 +532,12 @@ def period(
     if throw:
         if is_concrete(out.status):
             code = int(out.status)
+            if code in (NOT_OSCILLATING, SINGULAR_MASS, NONFINITE_INPUT):
+                raise _NoPeriodError(
+                    "`q0` must be a release point from which L oscillates; got "
+                    f"q0={float(q0)!r}: status {code} ({STATUS_CODES[code]}): "
+                    f"{status_message(code)}."
+                )
             if code != SUCCESS:
                 raise RuntimeError(
                     f"lagrax.period failed for q0={float(q0)!r}: status {code} "
@@ -689,6 +709,10 @@ def sweep_periods(
     )
     if devices is None:
         devices = jax.devices()
+    if isinstance(devices, jax.Device | str) or not hasattr(devices, "__iter__"):
+        raise TypeError(
+            f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
+        )
     devices = tuple(devices)
     if len(devices) == 0 or not all(isinstance(d, jax.Device) for d in devices):
         raise TypeError(

@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._custom_types import Lagrangian
+from ._mechanics import _call_user
 from ._misc import as_real_array, check_callable, is_concrete
 
 
@@ -67,8 +68,21 @@ _MESSAGES = {
 
 
 def quadrature_status_message(code) -> str:
-    """The message for one status code of `quadrature_period`."""
-    return _MESSAGES.get(int(code), f"unknown status code {int(code)}")
+    """The message for one status code of `quadrature_period`.
+
+    **Raises:** `ValueError` for anything but one of the codes 0-7.
+    """
+    try:
+        key = int(code)
+        known = key == code and key in _MESSAGES
+    except (TypeError, ValueError):
+        known = False
+    if not known:
+        raise ValueError(
+            f"`code` must be a quadrature status code {sorted(_MESSAGES)}; "
+            f"got {code!r}."
+        )
+    return _MESSAGES[key]
 
 
 class QuadratureResult(eqx.Module):
@@ -454,14 +468,16 @@ def quadrature_period(
     rtol = as_real_array(rtol, "rtol") if not isinstance(rtol, int | float) else rtol
     if jnp.ndim(rtol) != 0:
         raise ValueError(f"`rtol` must be a scalar; got shape {jnp.shape(rtol)}.")
-    if is_concrete(rtol) and not float(rtol) > 0:
-        raise ValueError(f"`rtol` must be positive; got {float(rtol)}.")
+    if is_concrete(rtol) and not (np.isfinite(float(rtol)) and float(rtol) > 0):
+        raise ValueError(f"`rtol` must be positive and finite; got {float(rtol)}.")
     rtol = jnp.asarray(rtol, q0.dtype)
     if eager and not bool(jnp.all(jnp.isfinite(q0))):
         bad = np.asarray(q0)[~np.isfinite(np.asarray(q0))]
         raise ValueError(f"`q0` must be finite; got non-finite entries {bad[:5]}.")
     probe = jnp.zeros((1,), q0.dtype)
-    out = jax.eval_shape(L, probe, probe, jnp.zeros((), q0.dtype))
+    out = _call_user(
+        L, "L", "L(q, qdot, t) -> scalar", probe, probe, jnp.zeros((), q0.dtype)
+    )
     if getattr(out, "shape", None) != () or not jnp.issubdtype(out.dtype, jnp.floating):
         raise TypeError(
             "`L` must be a Lagrangian of one degree of freedom returning a real "
