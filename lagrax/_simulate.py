@@ -207,8 +207,9 @@ def simulate(
         else:
             if dt0 is None:
                 raise ValueError(
-                    f"`dt0` must be given with the fixed-step solver "
-                    f"{type(solver).__name__}; got dt0=None."
+                    f"`dt0` is required with the fixed-step solver "
+                    f"{type(solver).__name__}: a step size must be given; got "
+                    "dt0=None."
                 )
             stepsize_controller = dfx.ConstantStepSize()
     if dt0 is not None:
