@@ -72,6 +72,8 @@ BAD_STATES = {
     "bool-qdot": (Q1, jnp.array([True]), "qdot"),
     "complex-q": (jnp.ones(1, complex), V1, "q"),
     "str-q": ("0.5", V1, "q"),
+    "str-array-q": (np.array(["0.5"]), V1, "q"),
+    "object-q": (object(), V1, "q"),
     "none-qdot": (Q1, None, "qdot"),
     "empty": (jnp.zeros(0), jnp.zeros(0), "q"),
     "nan-q": (jnp.array([NAN]), V1, "q"),
@@ -766,3 +768,15 @@ def test_degenerate_simulate_lanes_report_failure():
     )
     with pytest.raises(Exception, match="minimum step size"):
         strict(jnp.array([2.0]))
+
+
+def test_lagrangian_undefined_at_a_finite_state():
+    L = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - jnp.sqrt(q[0])  # NaN for q < 0
+    with pytest.raises(ValueError, match="accelerations are not finite at q=\\[-1"):
+        lagrax.accelerations(L, jnp.array([-1.0]), V1)
+
+
+def test_period_warns_on_rtol_below_epsilon_before_compiling():
+    with pytest.warns(UserWarning, match="machine epsilon"):
+        with pytest.raises(ValueError, match="`method`"):
+            lagrax.period(PENDULUM, 1.0, rtol=1e-17, method="eighth")

@@ -121,6 +121,24 @@ def test_results_independent_of_chunk_size_and_order(mixed_sweep):
         assert np.isnan(got["periods"][is_bad]).all()
 
 
+def test_period_failures_raise_with_the_status(mixed_sweep):
+    with pytest.raises(RuntimeError, match="status 2 \\(max_steps\\)") as info:
+        lagrax.period(L, np.pi - 1e-6, **OPTIONS)
+    assert not isinstance(info.value, ValueError)  # not the input's fault
+    with pytest.raises(ValueError, match="`q0`.*singular_mass"):
+        lagrax.period(L, 10.0, **OPTIONS)
+
+
+def test_progress_reported_per_chunk(mixed_sweep):
+    q0, _, ref = mixed_sweep
+    seen = []
+    res = lagrax.sweep_periods(
+        L, jnp.asarray(q0), chunk_size=4, progress=lambda *a: seen.append(a), **OPTIONS
+    )
+    assert seen == [(4, 11), (8, 11), (11, 11)]
+    np.testing.assert_array_equal(res.status, ref.status)
+
+
 # ----------------------------------------------------------------- command line
 
 ARGV = ["sweep", "pendulum", "--count", "100", "--chunk-size", "8", "--quiet"]
@@ -285,7 +303,9 @@ def test_failing_amplitudes_counted_and_exit_1(
 
     monkeypatch.setattr(lagrax._period, "sweep_periods", spoil)
     out = tmp_path / "res.npz"
-    rc, stdout, err = _run(capsys, *ARGV, "--out", str(out))
+    loud = [a for a in ARGV if a != "--quiet"]
+    rc, stdout, err = _run(capsys, *loud, "--out", str(out))
+    assert "pendulum: 100/100 amplitudes" in err  # progress on stderr
     got = _load(out)
     failed = got["status"] != 0
     assert rc == 1
