@@ -22,10 +22,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import GeneralizedForce, Lagrangian
+from ._mechanics import _call_user
 from ._misc import as_real_array, check_callable, describe, is_concrete
 
 
 Positions = Callable[[jax.Array, jax.Array], jax.Array]
+
+_POSITIONS = "positions(q, t) -> r of shape (N, d)"
+_POTENTIAL = "potential(r, t) -> scalar"
+_CARTESIAN_FORCE = "cartesian_force(r, v, t) -> F of shape (N, d)"
 
 
 def _as_time_like(t, dtype):
@@ -74,9 +79,14 @@ def _check_scalar_output(out, name, call, what):
         )
 
 
-def _positions_and_velocities(positions, q, qdot, t):
+def _positions_and_velocities(positions, q, qdot, t, n_particles=None):
     r"""$(r, \dot r)$ from one JVP of `positions` along $(\dot q, 1)$."""
     t = _as_time_like(t, q.dtype)
+    # Shapes only (`jax.eval_shape`): a user error in `positions` is reported naming
+    # `positions` rather than the Lagrangian, at trace time, at no run-time cost.
+    _check_positions_output(
+        _call_user(positions, "positions", _POSITIONS, q, t), n_particles
+    )
     r, v = jax.jvp(positions, (q, t), (qdot, jnp.ones_like(t)))
     return r, v, t
 
@@ -170,17 +180,18 @@ def particle_lagrangian(
     n_particles = masses.shape[0]
 
     def L(q, qdot, t):
-        r, v, t = _positions_and_velocities(positions, q, qdot, t)
-        _check_positions_output(r, n_particles)
+        r, v, t = _positions_and_velocities(positions, q, qdot, t, n_particles)
         m = masses.astype(r.dtype)
         T = 0.5 * jnp.sum(m * jnp.sum(v * v, axis=-1))
         if potential is None:
             return T
-        V = potential(r, t)
         _check_scalar_output(
-            V, "potential", "potential(r, t)", "the potential energy V"
+            _call_user(potential, "potential", _POTENTIAL, r, t),
+            "potential",
+            "potential(r, t)",
+            "the potential energy V",
         )
-        return T - V
+        return T - potential(r, t)
 
     return L
 
@@ -231,10 +242,10 @@ def generalized_force(
 
     def force(q, qdot, t):
         t = _as_time_like(t, q.dtype)
+        _check_positions_output(_call_user(positions, "positions", _POSITIONS, q, t))
         r, linear = jax.linearize(positions, q, t)
-        _check_positions_output(r)
         v = linear(qdot, jnp.ones_like(t))
-        F = cartesian_force(r, v, t)
+        F = _call_user(cartesian_force, "cartesian_force", _CARTESIAN_FORCE, r, v, t)
         if getattr(F, "shape", None) != r.shape:
             raise ValueError(
                 "`cartesian_force` must return one force per particle, of the shape "
@@ -245,6 +256,7 @@ def generalized_force(
                 "`cartesian_force` must return real floating-point forces; "
                 f"cartesian_force(r, v, t) returned {describe(F)}."
             )
+        F = cartesian_force(r, v, t)
         Q, _ = jax.linear_transpose(linear, q, t)(F.astype(r.dtype))
         return Q
 
@@ -277,7 +289,7 @@ def dissipation_force(R: Callable) -> GeneralizedForce:
     check_callable(R, "R", "a Rayleigh function R(q, qdot, t) -> scalar")
 
     def force(q, qdot, t):
-        out = jax.eval_shape(R, q, qdot, t)
+        out = _call_user(R, "R", "R(q, qdot, t) -> scalar", q, qdot, t)
         _check_scalar_output(
             out, "R", "R(q, qdot, t)", "the Rayleigh dissipation function"
         )
@@ -299,7 +311,7 @@ def _as_configuration(r):
 
 def _constraint_values(constraints, r, t):
     check_callable(constraints, "constraints", "a function constraints(r, t) -> (k,)")
-    out = jax.eval_shape(constraints, r, t)
+    out = _call_user(constraints, "constraints", "constraints(r, t) -> (k,)", r, t)
     shape = getattr(out, "shape", None)
     dtype = getattr(out, "dtype", None)
     if shape is None or len(shape) > 1 or not jnp.issubdtype(dtype, jnp.floating):
@@ -452,8 +464,8 @@ def check_embedding(
             f"n >= 1; got shape {q.shape}."
         )
     t, rtol = _time_and_rtol(t, rtol, q.dtype)
+    _check_positions_output(_call_user(positions, "positions", _POSITIONS, q, t))
     r = positions(q, t)
-    _check_positions_output(r)
     r = r.astype(q.dtype)
     values, jac_f = _constraint_values(constraints, r, t)
     n = q.shape[0]

@@ -11,6 +11,7 @@ import lineax as lx
 import optimistix as optx
 from diffrax._term import WrapTerm  # not public; diffeqsolve wraps every term in it
 
+from ._misc import describe
 from ._term import LagrangianTerm
 
 
@@ -23,8 +24,11 @@ def _unwrap(term) -> tuple[LagrangianTerm, jax.Array]:
         term = term.term
     if not isinstance(term, LagrangianTerm):
         raise TypeError(
-            "VariationalMidpoint needs the Lagrangian itself: pass "
-            f"`lagrax.LagrangianTerm(L)` as the term; got {type(term).__name__}."
+            "`terms` must be a `lagrax.LagrangianTerm(L)`: VariationalMidpoint is "
+            "built from the Lagrangian itself, not from a vector field; got "
+            f"{type(term).__name__}. Pass `lagrax.LagrangianTerm(L, force=...)` to "
+            "`diffrax.diffeqsolve`, or use `lagrax.simulate(L, ..., "
+            "solver=lagrax.VariationalMidpoint(), dt0=h)`."
         )
     return term, direction
 
@@ -109,6 +113,15 @@ class VariationalMidpoint(dfx.AbstractSolver):
     - `linear_solver`: the lineax solver for the Newton systems (default `lineax.LU()`;
         the Jacobian is not symmetric in general).
 
+    **Raises:**
+
+    - `ValueError`: `rtol` or `atol` not `None` or a float in (0, 1);
+        `max_newton_steps` not a positive int.
+    - `TypeError`: `linear_solver` is not a `lineax.AbstractLinearSolver` instance;
+        (in `diffrax.diffeqsolve`) the term is not a `lagrax.LagrangianTerm`: a plain
+        `diffrax.ODETerm(lagrax.vector_field(L))` carries no Lagrangian to build the
+        scheme from. `lagrax.simulate` passes a `LagrangianTerm` itself.
+
     **Example:**
 
     ```python
@@ -122,7 +135,10 @@ class VariationalMidpoint(dfx.AbstractSolver):
     max_newton_steps: int = eqx.field(static=True, default=16)
     linear_solver: lx.AbstractLinearSolver = lx.LU()
 
-    term_structure: ClassVar = LagrangianTerm
+    # Any term passes diffrax's own compatibility check (whose message names no
+    # argument); `init` then rejects anything but a `LagrangianTerm` with a message
+    # naming `terms`.
+    term_structure: ClassVar = dfx.AbstractTerm
     interpolation_cls: ClassVar[Callable[..., dfx.LocalLinearInterpolation]] = (
         dfx.LocalLinearInterpolation
     )
@@ -140,6 +156,12 @@ class VariationalMidpoint(dfx.AbstractSolver):
             raise ValueError(
                 "`max_newton_steps` must be a positive int; got "
                 f"{self.max_newton_steps!r}."
+            )
+        if not isinstance(self.linear_solver, lx.AbstractLinearSolver):
+            raise TypeError(
+                "`linear_solver` must be a lineax linear solver (an instance of "
+                "`lineax.AbstractLinearSolver`), e.g. `lineax.LU()`; got "
+                f"{describe(self.linear_solver)}."
             )
 
     def order(self, terms):

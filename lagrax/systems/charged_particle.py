@@ -13,6 +13,26 @@ drifting at $E\times B/|B|^2$.
 
 import jax.numpy as jnp
 
+from .._misc import describe
+
+
+def _check_field(x, name):
+    """`x` must be a real scalar or 3-vector (a scalar applies to every component)."""
+    expected = f"`{name}` must be a real 3-vector (or a scalar, for every component)"
+    if isinstance(x, str | bytes) or x is None or callable(x):
+        raise TypeError(f"{expected}; got {describe(x)}.")
+    try:
+        dtype = jnp.result_type(x)
+        shape = jnp.shape(x)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{expected}; got {describe(x)}.") from e
+    if jnp.issubdtype(dtype, jnp.complexfloating) or not (
+        jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)
+    ):
+        raise TypeError(f"{expected}; got dtype {dtype}.")
+    if shape not in ((), (1,), (3,)):
+        raise ValueError(f"{expected}, shape (3,); got shape {shape}.")
+
 
 def _field(x, dtype):
     return jnp.broadcast_to(jnp.asarray(x, dtype=dtype), (3,))
@@ -20,7 +40,13 @@ def _field(x, dtype):
 
 def lagrangian(*, m=1.0, charge=1.0, B=(0.0, 0.0, 1.0), E=(0.0, 0.0, 0.0)):
     r"""$L = \frac12 m|\dot r|^2 + e\,\dot r\cdot\frac12(B\times r) + e\,E\cdot r$,
-    $q = r = (x, y, z)$; `charge` is $e$, `B` and `E` are 3-vectors."""
+    $q = r = (x, y, z)$; `charge` is $e$, `B` and `E` are 3-vectors (a scalar is
+    broadcast to all three components).
+
+    **Raises:** `TypeError`/`ValueError` if `B` or `E` is not a real 3-vector or scalar.
+    """
+    _check_field(B, "B")
+    _check_field(E, "E")
 
     def L(q, qdot, t):
         b = _field(B, q.dtype)
@@ -37,6 +63,8 @@ def lagrangian(*, m=1.0, charge=1.0, B=(0.0, 0.0, 1.0), E=(0.0, 0.0, 0.0)):
 
 def acceleration(q, qdot, *, m=1.0, charge=1.0, B=(0.0, 0.0, 1.0), E=(0.0, 0.0, 0.0)):
     r"""The Lorentz force law $\ddot r = (e/m)(E + \dot r\times B)$."""
+    _check_field(B, "B")
+    _check_field(E, "E")
     b = _field(B, qdot.dtype)
     e_field = _field(E, qdot.dtype)
     return (charge / m) * (e_field + jnp.cross(qdot, b))
@@ -44,7 +72,9 @@ def acceleration(q, qdot, *, m=1.0, charge=1.0, B=(0.0, 0.0, 1.0), E=(0.0, 0.0, 
 
 def cyclotron_frequency(*, m=1.0, charge=1.0, B=(0.0, 0.0, 1.0)):
     r"""$\omega_c = |e|\,|B|/m$."""
-    return jnp.abs(charge) * jnp.linalg.norm(jnp.asarray(B, dtype=float)) / m
+    _check_field(B, "B")
+    # `_field`, as in `lagrangian`: a scalar B is the vector (B, B, B).
+    return jnp.abs(charge) * jnp.linalg.norm(_field(B, jnp.result_type(float))) / m
 
 
 def exact_trajectory(
@@ -63,6 +93,8 @@ def exact_trajectory(
 
     **Returns:** `(r, v)`, each of shape `t.shape + (3,)`.
     """
+    _check_field(B, "B")
+    _check_field(E, "E")
     dtype = jnp.result_type(q0, qdot0, float)
     Bv = _field(B, dtype)
     Ev = _field(E, dtype)

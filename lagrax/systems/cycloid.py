@@ -14,6 +14,8 @@ amplitude, the cusp included.
 
 import jax.numpy as jnp
 
+from .pendulum import _as_positive
+
 
 def lagrangian(*, m=1.0, R=1.0, g=1.0):
     r"""$L = mR^2\dot\theta^2(1 - \cos\theta) - mgR(1 + \cos\theta)$, $q = (\theta,)$.
@@ -52,8 +54,14 @@ def acceleration(theta, thetadot, *, R=1.0, g=1.0):
 
 
 def cycloid_period(amplitude=None, R=1.0, g=1.0):
-    r"""$T = 4\pi\sqrt{R/g}$, independent of the amplitude (broadcast to its shape)."""
-    T = 4 * jnp.pi * jnp.sqrt(jnp.asarray(R) / g)
+    r"""$T = 4\pi\sqrt{R/g}$, independent of the amplitude (broadcast to its shape).
+
+    **Raises:** `TypeError` if `R` or `g` is not real; `ValueError` if either is not
+    positive (checked when its value is known, i.e. not under `jit`/`vmap`).
+    """
+    R = _as_positive(R, "R")
+    g = _as_positive(g, "g")
+    T = 4 * jnp.pi * jnp.sqrt(R / g)
     if amplitude is None:
         return T
     return jnp.broadcast_to(T, jnp.shape(amplitude))

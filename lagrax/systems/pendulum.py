@@ -9,6 +9,9 @@ $T = 2\pi\sqrt{r/g}\,/\,\mathrm{AGM}(1, \cos(\theta_0/2))$.
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from .._misc import as_real_array, is_concrete
 
 
 def lagrangian(*, m=1.0, r=1.0, g=1.0):
@@ -28,6 +31,28 @@ def acceleration(theta, *, r=1.0, g=1.0):
 def small_amplitude_period(*, r=1.0, g=1.0):
     r"""$T_0 = 2\pi\sqrt{r/g}$, the limit of the period as the amplitude goes to 0."""
     return 2 * jnp.pi * jnp.sqrt(jnp.asarray(r) / g)
+
+
+def _as_real(x, name):
+    # Python ints and integer arrays are harmless here (a length, an angle in whole
+    # radians): promote them to the default float. Strings, complex, bool: rejected.
+    if not isinstance(x, str | bytes | bool) and x is not None:
+        try:
+            dtype = jnp.result_type(x)
+        except TypeError:
+            dtype = None
+        if dtype is not None and jnp.issubdtype(dtype, jnp.integer):
+            x = jnp.asarray(x, dtype=jnp.result_type(float))
+    return as_real_array(x, name)
+
+
+def _as_positive(x, name):
+    """A real float array, positive wherever its values are known (eager calls)."""
+    x = _as_real(x, name)
+    # numpy, not jnp: inside a jit trace a jnp op on a concrete array is a tracer.
+    if is_concrete(x) and not np.all(np.asarray(x) > 0):
+        raise ValueError(f"`{name}` must be positive; got {np.asarray(x)!r}.")
+    return x
 
 
 def _agm(a, b, iterations=12):
@@ -50,15 +75,22 @@ def pendulum_period(amplitude, r=1.0, g=1.0):
     (equivalent to $4\sqrt{r/g}\,K(\sin^2(\theta_0/2))$), accurate to a few ulps in
     float64, differentiable, and elementwise over arrays.
 
-    **Arguments:** `amplitude`: $\theta_0$ in radians; `r`, `g`: length and gravity.
+    **Arguments:** `amplitude`: $\theta_0$ in radians (real; integers are promoted to
+    float); `r`, `g`: length and gravity, positive.
 
     **Returns:** $T$; `inf` where $|\theta_0| \ge \pi$ (at $\pi$ the bob balances
     forever, beyond it a release from rest is a swing of amplitude $2\pi - |\theta_0|$
     about the other side, not this amplitude).
+
+    **Raises:**
+
+    - `TypeError`: `amplitude`, `r` or `g` is not real (a string, complex, `None`).
+    - `ValueError`: `r` or `g` is not positive (checked when its value is known, i.e.
+        not under `jit`/`vmap`).
     """
-    theta0 = jnp.abs(jnp.asarray(amplitude))
-    if not jnp.issubdtype(theta0.dtype, jnp.floating):
-        theta0 = theta0.astype(jnp.result_type(float))
+    theta0 = jnp.abs(_as_real(amplitude, "amplitude"))
+    r = _as_positive(r, "r")
+    g = _as_positive(g, "g")
     inside = theta0 < jnp.pi
     b = jnp.cos(jnp.where(inside, theta0, 0.0) / 2)
     T = small_amplitude_period(r=r, g=g) / _agm(jnp.ones_like(b), b)

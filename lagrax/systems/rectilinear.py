@@ -8,6 +8,8 @@ from collections.abc import Callable
 
 import jax.numpy as jnp
 
+from .._misc import check_callable
+
 
 def lagrangian(potential: Callable, *, m=1.0):
     r"""$L(q, \dot q, t) = \frac12 m\dot x^2 - V(x)$ with $q = (x,)$.
@@ -15,7 +17,10 @@ def lagrangian(potential: Callable, *, m=1.0):
     **Arguments:** `potential`: `V(x) -> scalar` (a JAX function); `m`: the mass.
 
     **Returns:** `L(q, qdot, t)`.
+
+    **Raises:** `TypeError` if `potential` is not callable.
     """
+    check_callable(potential, "potential", "a function V(x) -> scalar")
 
     def L(q, qdot, t):
         return 0.5 * m * qdot[0] ** 2 - potential(q[0])
