@@ -254,7 +254,9 @@ def main():
             va="center",
             fontsize=8,
         )
-    ax.set_title(f"Pendulum sweep, {n} amplitudes 0.01–3.1 rad (label: max rel. err)")
+    ax.set_title(
+        f"Pendulum sweep, {n} amplitudes 0.01–3.1 rad\n(bar label: max relative error)"
+    )
     fig.tight_layout()
     fig.savefig(os.path.join(RESULTS, "sweep.png"), dpi=120)
     print("wrote", os.path.join(RESULTS, "sweep.json"), "and sweep.png")
