@@ -409,7 +409,7 @@ def _check_tolerances(rtol, atol, t_max, energy_tol, dtype):
         warnings.warn(
             f"rtol={float(rtol):g} is below the machine epsilon of "
             f"{jnp.dtype(dtype).name} ({eps:.2g}): the periods cannot reach it. Enable "
-            "float64 (jax.config.update('jax_enable_x64', True)) or loosen rtol.",
+            "float64 (JAX's x64 mode, set by the caller) or loosen rtol.",
             stacklevel=3,
         )
     t_max = _check_scalar(t_max, "t_max", dtype, optional=True)

@@ -73,7 +73,7 @@ def _check_tolerance(x, name: str, dtype):
                 f"rtol={value:g} is below the machine epsilon of "
                 f"{jnp.dtype(dtype).name} ({eps:.2g}): the solve cannot deliver it. "
                 "Enable float64 "
-                "(jax.config.update('jax_enable_x64', True)) or loosen rtol.",
+                "(JAX's x64 mode, set by the caller) or loosen rtol.",
                 stacklevel=3,
             )
     return jnp.asarray(x, dtype=dtype)
