@@ -257,6 +257,12 @@ def mass_matrix(
 
     **Returns:** $M$ (for $L = T - V$, $T = \frac12\dot q^\top A(q)\dot q$: $M = A(q)$).
 
+    **Example:** for the pendulum $L = \frac12 r^2\dot\theta^2 + gr\cos\theta$,
+
+    ```python
+    lagrax.mass_matrix(L, jnp.array([0.3]), jnp.array([0.0]))  # [[r**2]]
+    ```
+
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
     """
     q, qdot, t = _prepare(L, q, qdot, t)
@@ -272,6 +278,8 @@ def momenta(
 
     **Returns:** $p$, shape `(n,)`. For a cyclic coordinate ($\partial L/\partial q_j =
     0$) $p_j$ is conserved (Noether).
+
+    **Example:** `lagrax.momenta(L, q, qdot)` is $r^2\dot\theta$ for the pendulum.
 
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
     """
@@ -291,6 +299,13 @@ def energy(
     **Arguments:** `L(q, qdot, t) -> scalar`; `q`, `qdot` 1-D float arrays; time `t`.
 
     **Returns:** the scalar $h$.
+
+    **Example:** conservation along a trajectory,
+
+    ```python
+    sol = lagrax.simulate(L, q0, qdot0, 0.0, 10.0, saveat=diffrax.SaveAt(ts=ts))
+    h = jax.vmap(lambda q, v: lagrax.energy(L, q, v))(*sol.ys)
+    ```
 
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
     """
