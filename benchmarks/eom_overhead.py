@@ -54,7 +54,7 @@ import numpy as np  # noqa: E402
 
 import lagrax  # noqa: E402
 from lagrax._simulate import default_controller  # noqa: E402
-from lagrax.systems import cycloid, pendulum  # noqa: E402
+from lagrax.systems import cycloid, double_pendulum, pendulum  # noqa: E402
 
 
 RESULTS = pathlib.Path(__file__).parent / "results"
@@ -84,30 +84,8 @@ def double_pendulum_lagrangian(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
 
 def double_pendulum_hand(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
     """The textbook closed form of the double pendulum's accelerations."""
-
-    def qddot(q, qdot):
-        th1, th2 = q[0], q[1]
-        w1, w2 = qdot[0], qdot[1]
-        d = th1 - th2
-        sd, cd = jnp.sin(d), jnp.cos(d)
-        den = 2 * m1 + m2 - m2 * jnp.cos(2 * d)
-        a1 = (
-            -g * (2 * m1 + m2) * jnp.sin(th1)
-            - m2 * g * jnp.sin(th1 - 2 * th2)
-            - 2 * sd * m2 * (w2**2 * l2 + w1**2 * l1 * cd)
-        ) / (l1 * den)
-        a2 = (
-            2
-            * sd
-            * (
-                w1**2 * l1 * (m1 + m2)
-                + g * (m1 + m2) * jnp.cos(th1)
-                + w2**2 * l2 * m2 * cd
-            )
-        ) / (l2 * den)
-        return jnp.stack([a1, a2])
-
-    return qddot
+    params = dict(m1=m1, m2=m2, l1=l1, l2=l2, g=g)
+    return lambda q, qdot: double_pendulum.acceleration(q, qdot, **params)
 
 
 def double_pendulum_sympy(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
