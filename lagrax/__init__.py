@@ -18,7 +18,6 @@ from ._period import (
     period as period,
     STATUS_CODES as STATUS_CODES,
     status_message as status_message,
-    sweep_periods as sweep_periods,
     SweepResult as SweepResult,
 )
 from ._quadrature import (
@@ -26,6 +25,7 @@ from ._quadrature import (
     quadrature_status_message as quadrature_status_message,
     QuadratureResult as QuadratureResult,
 )
+from ._sweep import sweep_periods as sweep_periods
 from ._simulate import simulate as simulate, vector_field as vector_field
 from ._term import LagrangianTerm as LagrangianTerm
 from ._transform import reparametrize as reparametrize
