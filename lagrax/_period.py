@@ -160,7 +160,7 @@ class _Lane(eqx.Module):
     steps: Array  # steps of every batched loop of the lane, shape (n_loops,)
 
 
-_METHODS = {"half": 2, "full": 1, "quarter": 4}
+_METHODS = {"half": 2, "full": 1, "quarter": 4, "matched": 2}
 _REFINE_SUBSTEPS = 4
 
 

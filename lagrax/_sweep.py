@@ -116,14 +116,19 @@ def _rk_step(tab, accel, s, x, v, a, h):
     return x1, v1, a1, ex, ev
 
 
-class _Config(eqx.Module):
-    """Everything static about one compiled kernel."""
+class _Pass(eqx.Module):
+    """Everything static about one pass of the kernel over the queue.
+
+    `event`: what ends a leg: `"v"` the next turning point (σq̇ from + to 0), `"a"` the
+    point of maximum speed (σq̈ from + to 0), `"x"` a given position (per lane).
+    `legs`: legs per lane (2: through the turning point and back).
+    """
 
     tab: _Tableau
-    method: str = eqx.field(static=True)
+    event: str = eqx.field(static=True)
+    legs: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
-    has_t_max: bool = eqx.field(static=True)
 
 
 def _lane_scales(L, q0, consts):
@@ -147,7 +152,7 @@ def _lane_scales(L, q0, consts):
     return jax.vmap(one)(q0)
 
 
-def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
+def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
     """All amplitudes `q0s` (shape (n,)) through `cfg.width` refilling lanes.
 
     Returns per amplitude: raw outcome, event time (lane units), end state (x, v) and
@@ -163,8 +168,7 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
     ctrl = dfx.PIDController(rtol=0.0, atol=0.0)
     safety, fmin, fmax = ctrl.safety, ctrl.factormin, ctrl.factormax
     expo = 1.0 / tab.error_order
-    quarter = cfg.method == "quarter"
-    two_legs = cfg.method == "full"
+    kind = cfg.event
 
     def accel_one(q0, Qs, tau, s, x, v):
         Vs, As = Qs / tau, Qs / tau**2
@@ -183,6 +187,7 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
         live = idx < n
         q0 = jnp.where(live, q0s[jnp.minimum(idx, n - 1)], 1.0)
         valid, Qs, tau, sigma = _lane_scales(L, q0, consts)
+        target = targets[jnp.minimum(idx, n - 1)]
         z = jnp.zeros_like(q0)
         h0 = jnp.full_like(q0, 0.1 * jnp.minimum(rtol, atol) ** expo)
         return dict(
@@ -211,10 +216,11 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
             hsave=z,  # the controller's step size when the crossing was found
             tries=jnp.zeros_like(idx, jnp.int32),
             limit=jnp.where(live & valid, t_max / tau, 0.0),
+            xt=(target - q0) / Qs,  # the target of a "x" event, in the lane's units
         )
 
     def g_of(lane, x, v, a):
-        return lane["sigma"] * (a if quarter else v)
+        return _event_value(kind, lane["sigma"], lane["xt"], x, v, a)
 
     def body(carry):
         lane, out, nxt, it = carry
@@ -255,15 +261,16 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
         glo = jnp.where(crossed, g_of(lane, x, v, a), glo)
         hi = jnp.where(crossed, h, hi)
         ghi = jnp.where(crossed, g1, ghi)
-        if quarter:
+        if kind == "a":
             # Secant through the two latest trials, kept inside the bracket.
             hp = jnp.where(crossed, 0.0, lane["hp"])
             gp = jnp.where(crossed, glo, lane["gp"])
             denom = g1 - gp
             guess = h - g1 * (h - hp) / jnp.where(denom != 0, denom, 1.0)
         else:
-            # Newton on σ q̇(h) = 0: its derivative is σ q̈ at the trial's end.
-            dg = lane["sigma"] * a1
+            # Newton on σq̇(h) = 0 or σ(x_t - x(h)) = 0: the derivative is σq̈ or -σq̇
+            # at the trial's end, both at hand.
+            dg = _event_slope(kind, lane["sigma"], v1, a1)
             guess = h - g1 / jnp.where(dg != 0, dg, 1.0)
         inside = (guess > lo) & (guess < hi) & jnp.isfinite(guess)
         guess = jnp.where(inside, guess, 0.5 * (lo + hi))
@@ -271,7 +278,13 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
         # The event value is known only to its rounding: for σq̇ that of q̇ + hΣb q̈
         # (measured: Newton otherwise stalls there on 5% of the pendulum's lanes); for
         # σq̈, that of q̈, whose scale is 1 in the lane's units.
-        g_noise = 8 * eps * (1.0 if quarter else jnp.abs(v) + 4 * jnp.abs(h * a1))
+        if kind == "a":
+            g_scale = 1.0
+        elif kind == "v":
+            g_scale = jnp.abs(v) + 4 * jnp.abs(h * a1)
+        else:
+            g_scale = jnp.abs(x) + jnp.abs(lane["xt"]) + 4 * jnp.abs(h * v1)
+        g_noise = 8 * eps * g_scale
         converged = (locating | crossed) & finite & (
             (jnp.abs(guess - h) <= conv_tol) | (jnp.abs(g1) <= g_noise)
         )
@@ -301,7 +314,7 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
         collapsed = ~new_locating & ~moved & (h_next < dtmin)
         out_of_steps = steps >= cfg.max_steps
         leg = lane["leg"]
-        if two_legs:
+        if cfg.legs == 2:
             next_leg = converged & (leg == 0)
             finished = converged & (leg == 1)
         else:
@@ -317,7 +330,8 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
         )
         # The second leg of "full" starts at rest at the turning point just found, at a
         # time that carries the implicit-function tangent of the event (zero primal).
-        corr = -g1 / jnp.where(a1 != 0, lane["sigma"] * a1, 1.0)
+        dg1 = _event_slope(kind, lane["sigma"], v1, a1)
+        corr = -g1 / jnp.where(dg1 != 0, dg1, 1.0)
         s_new = jnp.where(next_leg, s_new + (corr - jax.lax.stop_gradient(corr)), s_new)
         sigma = jnp.where(next_leg, jnp.sign(a_new), lane["sigma"])
         v_new = jnp.where(next_leg, 0.0, v_new)
@@ -341,7 +355,7 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
             tries=tries,
             hsave=hsave,
         )
-        if quarter:
+        if kind == "a":
             lane["hp"] = jnp.where(locating | crossed, h, lane["hp"])
             lane["gp"] = jnp.where(locating | crossed, g1, lane["gp"])
 
@@ -391,8 +405,26 @@ def _run_queue(L, cfg: _Config, q0s, rtol, atol, t_max, consts):
     return out, iterations * W
 
 
-def _finish(L, consts, cfg, q0, out, rtol, energy_tol):
-    """Statuses and periods from the loop's raw outcomes (one vmapped pass)."""
+def _event_value(kind, sigma, xt, x, v, a):
+    """The event function g, positive during a leg, crossing to <= 0 at its end."""
+    if kind == "v":
+        return sigma * v
+    if kind == "a":
+        return sigma * a
+    return sigma * (xt - x)
+
+
+def _event_slope(kind, sigma, v, a):
+    """dg/ds along the motion where it needs no extra evaluation ("a": unused, 1)."""
+    if kind == "v":
+        return sigma * a
+    if kind == "x":
+        return -sigma * v
+    return jnp.ones_like(a)
+
+
+def _finish(L, consts, cfg, q0, targets, out, rtol, energy_tol):
+    """Statuses, event times and end states from the loop's raw outcomes (vmapped)."""
     from ._period import (
         ENERGY_DRIFT,
         MAX_STEPS as S_MAX_STEPS,
@@ -409,9 +441,8 @@ def _finish(L, consts, cfg, q0, out, rtol, energy_tol):
     eps = jnp.finfo(dtype).eps
     zero = jnp.zeros((), dtype)
     Lp = lambda q, qd, t: L(q, qd, t, *consts)
-    factor = {"half": 2.0, "quarter": 4.0, "full": 1.0}[cfg.method]
 
-    def one(q0, sigma, raw, s_e, x_e, v_e):
+    def one(q0, target, sigma, raw, s_e, x_e, v_e):
         finite_q0 = jnp.isfinite(q0)
         q0 = jnp.where(finite_q0, q0, 1.0)
         a0, (M0, ok0) = _accelerations(Lp, q0[None], zero[None], zero)
@@ -449,92 +480,220 @@ def _finish(L, consts, cfg, q0, out, rtol, energy_tol):
             [NONFINITE_INPUT, SINGULAR_MASS, NOT_OSCILLATING],
             status,
         )
+
         # The loop's step lengths carry no tangent (the controller's choices are not
         # differentiated); the event time's tangent is the implicit function's,
-        # ds = -dg/ġ, added here with a zero primal: g = σq̇ or σq̈ at the located state.
+        # ds = -dg/ġ, added here with a zero primal.
         def accel(s, x, v):
-            qddot, _ = _accelerations(Lp, (q0 + Qs * x)[None], (Qs / tau * v)[None], tau * s)
+            qddot, _ = _accelerations(
+                Lp, (q0 + Qs * x)[None], (Qs / tau * v)[None], tau * s
+            )
             return qddot[0] * tau**2 / Qs
 
         a_e = accel(s_e, x_e, v_e)
-        if cfg.method == "quarter":
-            g = sigma * a_e
+        xt = (target - q0) / Qs
+        g = _event_value(cfg.event, sigma, xt, x_e, v_e, a_e)
+        if cfg.event == "a":
             _, gdot = jax.jvp(accel, (s_e, x_e, v_e), (jnp.ones_like(s_e), v_e, a_e))
             gdot = sigma * gdot
         else:
-            g, gdot = sigma * v_e, sigma * a_e
+            gdot = _event_slope(cfg.event, sigma, v_e, a_e)
         corr = -g / jnp.where(gdot != 0, gdot, 1.0)
-        s_e = s_e + (corr - jax.lax.stop_gradient(corr))
-        T = jnp.where(status == SUCCESS, tau * factor * s_e, jnp.nan)
-        return T, status.astype(jnp.int32)
+        t_e = tau * (s_e + (corr - jax.lax.stop_gradient(corr)))
+        return status.astype(jnp.int32), t_e, q_end, qdot_end
 
     return jax.vmap(one)(
-        q0, out["sigma"], out["raw"], out["s"], out["x"], out["v"]
+        q0, targets, out["sigma"], out["raw"], out["s"], out["x"], out["v"]
     )
 
 
-def _device_sweep(L, cfg, q0, rtol, atol, t_max, energy_tol, consts):
+def _device_pass(L, cfg, q0, targets, rtol, atol, t_max, energy_tol, consts):
     t_lim = jnp.asarray(_NO_LIMIT if t_max is None else t_max, q0.dtype)
-    out, executed = _run_queue(L, cfg, q0, rtol, atol, t_lim, consts)
-    periods, status = _finish(L, consts, cfg, q0, out, rtol, energy_tol)
-    return periods, status, out["steps"], executed
+    out, executed = _run_queue(L, cfg, q0, targets, rtol, atol, t_lim, consts)
+    status, t_e, q_e, qd_e = _finish(
+        L, consts, cfg, q0, targets, out, rtol, energy_tol
+    )
+    return (status, t_e, q_e, qd_e, out["steps"]), executed
 
 
-def _kernel(L, cfg, devices, q0, consts, rtol, atol, t_max, energy_tol):
-    """Every amplitude over every device; outputs replicated, in input order."""
+def _pass(L, cfg, devices, q0, targets, consts, rtol, atol, t_max, energy_tol):
+    """One pass of the kernel over every amplitude and device; outputs replicated on
+    every device (and process), in input order: `(status, t_event, q_end, qdot_end,
+    steps), executed_lane_steps`."""
     n = q0.shape[0]
     D = len(devices)
     per = -(-n // D)
     if per * D > n:  # padded lanes repeat the last amplitude; they are dropped below
-        q0 = jnp.concatenate([q0, jnp.broadcast_to(q0[-1], (per * D - n,))])
+        pad = lambda x: jnp.concatenate([x, jnp.broadcast_to(x[-1], (per * D - n,))])
+        q0, targets = pad(q0), pad(targets)
     # Device d takes amplitudes d, d + D, ...: neighbouring amplitudes cost about the
     # same, so interleaving balances the devices.
-    q0 = q0.reshape(per, D).T
-    run = functools.partial(_device_sweep, L, cfg)
+    q0, targets = q0.reshape(per, D).T, targets.reshape(per, D).T
+    run = functools.partial(_device_pass, L, cfg)
     if D == 1:
-        periods, status, steps, executed = run(
-            q0[0], rtol, atol, t_max, energy_tol, consts
-        )
-        stacked = (periods[None], status[None], steps[None])
+        outs, executed = run(q0[0], targets[0], rtol, atol, t_max, energy_tol, consts)
+        outs = tuple(x[None] for x in outs)
     else:
 
-        def local(q0, rtol, atol, t_max, energy_tol, consts):
-            periods, status, steps, executed = run(
-                q0[0], rtol, atol, t_max, energy_tol, consts
+        def local(q0, targets, rtol, atol, t_max, energy_tol, consts):
+            outs, executed = run(
+                q0[0], targets[0], rtol, atol, t_max, energy_tol, consts
             )
-            gather = lambda x: jax.lax.all_gather(x, "lanes")
-            return (
-                gather(periods),
-                gather(status),
-                gather(steps),
-                jax.lax.psum(executed, "lanes"),
-            )
+            outs = tuple(jax.lax.all_gather(x, "lanes") for x in outs)
+            return outs, jax.lax.psum(executed, "lanes")
 
         mesh = Mesh(np.array(devices), ("lanes",))
-        *stacked, executed = jax.shard_map(
+        outs, executed = jax.shard_map(
             local,
             mesh=mesh,
-            in_specs=(P("lanes"), P(), P(), P(), P(), P()),
+            in_specs=(P("lanes"), P("lanes"), P(), P(), P(), P(), P()),
             out_specs=P(),
             check_vma=False,
-        )(q0, rtol, atol, t_max, energy_tol, consts)
-    periods, status, steps = (x.T.reshape(-1)[:n] for x in stacked)
-    return periods, status, steps, executed
+        )(q0, targets, rtol, atol, t_max, energy_tol, consts)
+    return tuple(x.T.reshape(-1)[:n] for x in outs), executed
+
+
+# Safeguarded Newton for the far turning point converges in ~5 iterations from the
+# bracket; the loop stops when every lane has converged.
+_MAX_NEWTON = 60
+_MAX_EXPAND = 40
+
+
+def _far_turning_point(L, consts, q0, q_m):
+    r"""The turning point beyond $q_m$ on the energy level of a release at rest at
+    $q_0$: the root of $F(q) = L(q, 0) - L(q_0, 0)$ (for $L$ even in $\dot q$ and
+    without explicit time, the energy at rest is $-L(q, 0)$), $F > 0$ between the
+    turning points. Bracketed from the mirror image of $q_0$ outward by growing
+    Newton steps, then safeguarded Newton. Returns `(q1, found)`."""
+    dtype = q0.dtype
+    eps = jnp.finfo(dtype).eps
+    z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
+    Lr = lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts)
+    F = jax.vmap(lambda q, q0: Lr(q) - Lr(q0))
+    # F is known only to the rounding of the two values of L: inside that band every
+    # point is the turning point as far as float64 can tell.
+    noise = jax.vmap(lambda q, q0: 4 * eps * (jnp.abs(Lr(q)) + jnp.abs(Lr(q0))))
+    dF = jax.vmap(jax.grad(Lr))
+    d = q_m - q0
+    out = jnp.sign(d)  # away from the release point
+    a, b = q_m, q_m + d  # the mirror image of q0: the root itself if the well is
+    Fa, Fb = F(a, q0), F(b, q0)  # mirror-symmetric, up to rounding
+
+    def expand(c):
+        # Still inside the well at b: step outward by a Newton step times 1, 2, 4, …
+        # (for a convex F Newton undershoots), never less than a few ulps, and by
+        # |d| times the same factor where F does not fall outward (a shoulder).
+        a, b, Fa, Fb, k = c
+        more = Fb > noise(b, q0)
+        slope = -out * dF(b)
+        newton = Fb / jnp.where(slope > 0, slope, 1.0)
+        step = jnp.where(slope > 0, newton, jnp.abs(d)) * 2.0**k
+        step = jnp.maximum(step, 4 * eps * jnp.maximum(jnp.abs(b), jnp.abs(d)))
+        b2 = jnp.where(more, b + out * step, b)
+        return (
+            jnp.where(more, b, a),
+            b2,
+            jnp.where(more, Fb, Fa),
+            jnp.where(more, F(b2, q0), Fb),
+            k + 1,
+        )
+
+    a, b, Fa, Fb, _ = jax.lax.while_loop(
+        lambda c: jnp.any(c[3] > noise(c[1], q0)) & (c[4] < _MAX_EXPAND),
+        expand,
+        (a, b, Fa, Fb, 0),
+    )
+    at_b = jnp.abs(Fb) <= noise(b, q0)  # e.g. the mirror image, in a symmetric well
+    found = ((Fb <= 0) | at_b) & (Fa > 0) & jnp.isfinite(a) & jnp.isfinite(b)
+    secant = a + (b - a) * Fa / jnp.where(Fa != Fb, Fa - Fb, 1.0)
+    x = jnp.where(found, jnp.where(at_b, b, secant), q0)
+
+    def newton(c):
+        a, b, x, done, k = c
+        fx = F(x, q0)
+        done = done | (jnp.abs(fx) <= noise(x, q0))
+        a, b = jnp.where(fx > 0, x, a), jnp.where(fx > 0, b, x)
+        x_new = x - fx / dF(x)
+        ok = jnp.isfinite(x_new) & ((x_new - a) * (x_new - b) < 0)
+        x_new = jnp.where(ok, x_new, 0.5 * (a + b))
+        done = done | (jnp.abs(x_new - x) <= 2 * eps * jnp.abs(x))
+        return a, b, jnp.where(done, x, x_new), done, k + 1
+
+    _, _, x, _, _ = jax.lax.while_loop(
+        lambda c: jnp.any(found & ~c[3]) & (c[4] < _MAX_NEWTON),
+        newton,
+        (a, b, x, ~found | at_b, 0),
+    )
+    # The tangent of the root by the implicit function theorem (zero primal).
+    corr = -F(x, q0) / dF(x)
+    corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
+    return x + (corr - jax.lax.stop_gradient(corr)), found
+
+
+class _Method(eqx.Module):
+    """A period method as passes of the kernel."""
+
+    tab: _Tableau
+    method: str = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+
+    def pass_(self, event, legs=1):
+        return _Pass(self.tab, event, legs, self.width, self.max_steps)
+
+
+def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
+    """Periods, statuses, steps and executed lane-steps of every release point."""
+    from ._period import ENERGY_DRIFT, NOT_OSCILLATING, SUCCESS
+
+    args = (consts, rtol, atol, t_max, energy_tol)
+    zeros = jnp.zeros_like(q0)
+    if m.method != "matched":
+        event, legs, factor = {
+            "half": ("v", 1, 2.0),
+            "quarter": ("a", 1, 4.0),
+            "full": ("v", 2, 1.0),
+        }[m.method]
+        (status, t_e, _, _, steps), executed = _pass(
+            L, m.pass_(event, legs), devices, q0, zeros, *args
+        )
+        T = jnp.where(status == SUCCESS, factor * t_e, jnp.nan)
+        return T, status, steps, executed
+    # Two quarter legs, each from rest at its own turning point, meeting at the
+    # point of maximum speed: nothing is integrated through the bottom of the swing.
+    (st_a, t_a, q_m, qd_a, steps_a), ex_a = _pass(
+        L, m.pass_("a"), devices, q0, zeros, *args
+    )
+    q1, found = _far_turning_point(L, consts, q0, q_m)
+    go = found & (st_a == SUCCESS)
+    (st_b, t_b, _, qd_b, steps_b), ex_b = _pass(
+        L, m.pass_("x"), devices, jnp.where(go, q1, jnp.nan), q_m, *args
+    )
+    tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
+    match = jnp.abs(jnp.abs(qd_a) - jnp.abs(qd_b)) <= tol * jnp.abs(qd_a)
+    status = jnp.select(
+        [st_a != SUCCESS, ~found, st_b != SUCCESS, ~match],
+        [st_a, jnp.full_like(st_a, NOT_OSCILLATING), st_b, jnp.full_like(st_a, ENERGY_DRIFT)],
+        st_a,
+    )
+    T = jnp.where(status == SUCCESS, 2 * (t_a + t_b), jnp.nan)
+    steps = steps_a + jnp.where(go, steps_b, 0)
+    return T, status, steps, ex_a + ex_b
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
-def _kernel_diff(L, cfg, devices, q0, consts, rtol, atol, t_max, energy_tol):
-    return _kernel(L, cfg, devices, q0, consts, rtol, atol, t_max, energy_tol)
+def _periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
+    return _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
 
 
-@_kernel_diff.defjvp
-def _kernel_jvp(L, cfg, devices, primals, tangents):
+@_periods_diff.defjvp
+def _periods_jvp(L, m, devices, primals, tangents):
     q0, consts, rtol, atol, t_max, energy_tol = primals
     dq0, dconsts = tangents[0], tangents[1]
-    periods_of = lambda q0, consts: _kernel(
-        L, cfg, devices, q0, consts, rtol, atol, t_max, energy_tol
+    periods_of = lambda q0, consts: _periods(
+        L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
     )[0]
-    out = _kernel(L, cfg, devices, q0, consts, rtol, atol, t_max, energy_tol)
+    out = _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
     # Lanes are independent: dT_i/dq0_j is diagonal, one forward pass for all of it;
     # each scalar parameter L closes over takes one more forward pass.
     leaves, treedef = jax.tree.flatten(consts)
@@ -578,8 +737,8 @@ def _zeros_if_symbolic(t, like):
 
 
 @eqx.filter_jit
-def _sweep_compiled(L, cfg, devices, q0, consts, rtol, atol, t_max, energy_tol):
-    return _kernel_diff(L, cfg, devices, q0, consts, rtol, atol, t_max, energy_tol)
+def _sweep_compiled(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
+    return _periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
 
 
 def closure_converted(L: Callable, dtype):
@@ -720,7 +879,7 @@ def sweep_periods(
         )
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
-    cfg = _Config(tab, _check_method(method), chunk_size, max_steps, t_max is not None)
+    cfg = _Method(tab, _check_method(method), chunk_size, max_steps)
     L_c, consts = closure_converted(L, dtype)
     n = q0.shape[0]
 
