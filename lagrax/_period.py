@@ -580,6 +580,7 @@ class SweepResult(eqx.Module):
     lane_steps_executed: Int[Array, ""]
     chunk_size: int = eqx.field(static=True)
     num_devices: int = eqx.field(static=True)
+    error_estimate: Float[Array, " n"] | None = None
 
     @property
     def useful_fraction(self) -> Array:

@@ -570,6 +570,7 @@ def _far_turning_point(L, consts, q0, q_m):
     z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
     Lr = lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts)
     F = jax.vmap(lambda q, q0: Lr(q) - Lr(q0))
+    Lr_v = jax.vmap(Lr)
     # F is known only to the rounding of the two values of L: inside that band every
     # point is the turning point as far as float64 can tell.
     noise = jax.vmap(lambda q, q0: 4 * eps * (jnp.abs(Lr(q)) + jnp.abs(Lr(q0))))
@@ -625,9 +626,22 @@ def _far_turning_point(L, consts, q0, q_m):
         (a, b, x, ~found | at_b, 0),
     )
     # The tangent of the root by the implicit function theorem (zero primal).
-    corr = -F(x, q0) / dF(x)
+    slope = dF(x)
+    corr = -F(x, q0) / slope
     corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
-    return x + (corr - jax.lax.stop_gradient(corr)), found
+    # How far the root is undetermined: the rounding scatter of F near the root,
+    # measured (the user's L may round by many ulps, or by half of one), over its
+    # slope. Nine values of F spaced 64 ulps apart, against the tangent line.
+    h = 64 * eps * jnp.maximum(jnp.abs(x), eps)
+    offsets = jnp.arange(-4, 5, dtype=dtype)
+    f0 = F(x, q0)
+    scatter = jnp.zeros_like(x)
+    for j in offsets:
+        fj = F(x + j * h, q0)
+        scatter = jnp.maximum(scatter, jnp.abs(fj - f0 - slope * j * h))
+    half_ulp = 0.5 * eps * jnp.maximum(jnp.abs(Lr_v(x)), jnp.abs(Lr_v(q0)))
+    band = (scatter + half_ulp) / jnp.abs(slope)
+    return x + (corr - jax.lax.stop_gradient(corr)), found, band
 
 
 class _Method(eqx.Module):
@@ -637,13 +651,16 @@ class _Method(eqx.Module):
     method: str = eqx.field(static=True)
     width: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
+    estimate: bool = eqx.field(static=True)
 
     def pass_(self, event, legs=1):
         return _Pass(self.tab, event, legs, self.width, self.max_steps)
 
 
-def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
-    """Periods, statuses, steps and executed lane-steps of every release point."""
+def _run_method(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol, q1=None):
+    """One solve of every release point by `m.method`: periods (NaN on failure),
+    statuses, steps, executed lane-steps, and for "matched" the far turning points
+    with the width of their rounding band (else None)."""
     from ._period import ENERGY_DRIFT, NOT_OSCILLATING, SUCCESS
 
     args = (consts, rtol, atol, t_max, energy_tol)
@@ -658,13 +675,16 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
             L, m.pass_(event, legs), devices, q0, zeros, *args
         )
         T = jnp.where(status == SUCCESS, factor * t_e, jnp.nan)
-        return T, status, steps, executed
+        return T, status, steps, executed, None
     # Two quarter legs, each from rest at its own turning point, meeting at the
     # point of maximum speed: nothing is integrated through the bottom of the swing.
     (st_a, t_a, q_m, qd_a, steps_a), ex_a = _pass(
         L, m.pass_("a"), devices, q0, zeros, *args
     )
-    q1, found = _far_turning_point(L, consts, q0, q_m)
+    if q1 is None:
+        q1, found, band = _far_turning_point(L, consts, q0, q_m)
+    else:
+        q1, found, band = q1
     go = found & (st_a == SUCCESS)
     (st_b, t_b, _, qd_b, steps_b), ex_b = _pass(
         L, m.pass_("x"), devices, jnp.where(go, q1, jnp.nan), q_m, *args
@@ -673,12 +693,56 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     match = jnp.abs(jnp.abs(qd_a) - jnp.abs(qd_b)) <= tol * jnp.abs(qd_a)
     status = jnp.select(
         [st_a != SUCCESS, ~found, st_b != SUCCESS, ~match],
-        [st_a, jnp.full_like(st_a, NOT_OSCILLATING), st_b, jnp.full_like(st_a, ENERGY_DRIFT)],
+        [
+            st_a,
+            jnp.full_like(st_a, NOT_OSCILLATING),
+            st_b,
+            jnp.full_like(st_a, ENERGY_DRIFT),
+        ],
         st_a,
     )
     T = jnp.where(status == SUCCESS, 2 * (t_a + t_b), jnp.nan)
     steps = steps_a + jnp.where(go, steps_b, 0)
-    return T, status, steps, ex_a + ex_b
+    return T, status, steps, ex_a + ex_b, (q1, found, band)
+
+
+# The error estimate: a second solve at `_LOOSER` times the tolerances (for
+# "matched", from the far turning point moved across its rounding band), and
+# `_SAFETY` times the difference. Calibrated on exact periods (tests/test_estimate.py).
+_LOOSER = 10.0
+_SAFETY = 3.0
+#: A lane's period is trusted when its estimate is below this many times rtol.
+PROMISE = 10.0
+
+
+def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
+    """Periods, statuses, steps, executed lane-steps and error estimates."""
+    from ._period import SUCCESS
+
+    T, status, steps, executed, far = _run_method(
+        L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
+    )
+    if not m.estimate:
+        return T, status, steps, executed, jnp.full_like(T, jnp.nan)
+    if far is not None:
+        q1, found, band = far
+        far = (q1 + band, found, band)
+    T2, status2, steps2, executed2, _ = _run_method(
+        L, m, devices, q0, consts, _LOOSER * rtol, _LOOSER * atol, t_max, energy_tol,
+        q1=far,
+    )
+    eps = jnp.finfo(q0.dtype).eps
+    est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
+    est = jax.lax.stop_gradient(jnp.where(status == SUCCESS, est, jnp.nan))
+    # The looser solve failing where the requested one succeeded says nothing sure.
+    est = jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)
+    unmet = (status == SUCCESS) & ~(est <= PROMISE * rtol)
+    status = jnp.where(unmet, TOLERANCE_NOT_MET, status)
+    T = jnp.where(unmet, jnp.nan, T)
+    return T, status, steps + steps2, executed + executed2, est
+
+
+TOLERANCE_NOT_MET = 12
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
@@ -727,7 +791,13 @@ def _periods_jvp(L, m, devices, primals, tangents):
         dT = dT + jnp.tensordot(dx, jac[k : k + m], axes=1)
         k += m
     int_tangent = lambda y: np.zeros(np.shape(y), jax.dtypes.float0)
-    return out, (dT, int_tangent(out[1]), int_tangent(out[2]), int_tangent(out[3]))
+    return out, (
+        dT,
+        int_tangent(out[1]),
+        int_tangent(out[2]),
+        int_tangent(out[3]),
+        jnp.zeros_like(out[4]),
+    )
 
 
 def _zeros_if_symbolic(t, like):
@@ -765,11 +835,12 @@ def sweep_periods(
     max_steps: int = 4096,
     t_max=None,
     energy_tol=None,
-    method: str = "half",
+    method: str = "matched",
     chunk_size: int = 256,
     sort: bool = True,
     devices=None,
     progress: Callable[[int, int], None] | None = None,
+    error_estimate: bool = True,
 ):
     r"""Periods of many release points at once: `period` over a batch, done fast.
 
@@ -879,7 +950,7 @@ def sweep_periods(
         )
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
-    cfg = _Method(tab, _check_method(method), chunk_size, max_steps)
+    cfg = _Method(tab, _check_method(method), chunk_size, max_steps, bool(error_estimate))
     L_c, consts = closure_converted(L, dtype)
     n = q0.shape[0]
 
@@ -889,7 +960,7 @@ def sweep_periods(
         )
 
     if progress is None:
-        periods, status, steps, executed = run(q0)
+        periods, status, steps, executed, estimate = run(q0)
     else:
         # Pieces of one size (one compilation), padded with the last release point.
         size = max(chunk_size * len(devices) * 4, -(-n // 20))
@@ -900,8 +971,8 @@ def sweep_periods(
             outs.append(run(padded[k * size : (k + 1) * size]))
             jax.block_until_ready(outs[-1])
             progress(min((k + 1) * size, n), n)
-        periods, status, steps = (
-            jnp.concatenate([o[i] for o in outs])[:n] for i in range(3)
+        periods, status, steps, estimate = (
+            jnp.concatenate([o[i] for o in outs])[:n] for i in (0, 1, 2, 4)
         )
         executed = sum(o[3] for o in outs)
     return SweepResult(
@@ -912,4 +983,5 @@ def sweep_periods(
         lane_steps_executed=jnp.asarray(executed),
         chunk_size=chunk_size,
         num_devices=len(devices),
+        error_estimate=estimate if error_estimate else None,
     )
