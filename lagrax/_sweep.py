@@ -671,11 +671,19 @@ def _run_method(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol, q1=Non
             "quarter": ("a", 1, 4.0),
             "full": ("v", 2, 1.0),
         }[m.method]
-        (status, t_e, _, _, steps), executed = _pass(
+        (status, t_e, q_e, _, steps), executed = _pass(
             L, m.pass_(event, legs), devices, q0, zeros, *args
         )
+        # The far side of the swing, for `_blame_coordinates`: where the solve
+        # stopped, or past the point of maximum speed by as much again.
+        q_far = 2 * q_e - q0 if event == "a" else q_e
+        if event == "a":
+            # T = 4 t(q0 -> q_m) holds for a well mirror-symmetric about q_m: the
+            # mirror image of q0 must be a turning point (to rtol across the swing).
+            symmetric = _is_turning_point(L, consts, q0, q_far, rtol * jnp.abs(q_e - q0))
+            status = jnp.where((status == SUCCESS) & ~symmetric, NOT_SYMMETRIC, status)
         T = jnp.where(status == SUCCESS, factor * t_e, jnp.nan)
-        return T, status, steps, executed, None
+        return T, status, steps, executed, None, q_far
     # Two quarter legs, each from rest at its own turning point, meeting at the
     # point of maximum speed: nothing is integrated through the bottom of the swing.
     (st_a, t_a, q_m, qd_a, steps_a), ex_a = _pass(
@@ -701,9 +709,46 @@ def _run_method(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol, q1=Non
         ],
         st_a,
     )
+    q_far = jnp.where(found, q1, 2 * q_m - q0)
     T = jnp.where(status == SUCCESS, 2 * (t_a + t_b), jnp.nan)
     steps = steps_a + jnp.where(go, steps_b, 0)
-    return T, status, steps, ex_a + ex_b, (q1, found, band)
+    return T, status, steps, ex_a + ex_b, (q1, found, band), q_far
+
+
+# A failed lane whose mass ∂²L/∂q̇² falls below this fraction of its largest value
+# between the release point and the far side of the swing failed because of the
+# coordinates (Huygens' cycloid in θ near its cusp: the mass is 2mR²(1 - cos θ)).
+_VANISHING_MASS = 1e-6
+_MASS_SAMPLES = 33
+
+
+def _blame_coordinates(L, consts, q0, q_far, status):
+    """`coordinate_singularity` for failed lanes whose mass vanishes on the swing."""
+    from ._period import SUCCESS
+
+    dtype = q0.dtype
+    z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
+    Lp = lambda q, qd, t: L(q, qd, t, *consts)
+
+    def mass(q):
+        _, (M, _) = _accelerations(Lp, jnp.reshape(q, (1,)), z1, z)
+        return jnp.abs(M[0, 0])
+
+    def vanishes(q0, q_far):
+        w = jnp.linspace(0.0, 1.0, _MASS_SAMPLES, dtype=dtype)
+        ms = jax.vmap(mass)(q0 + w * (q_far - q0))
+        ms = jnp.where(jnp.isfinite(ms), ms, 0.0)
+        return jnp.min(ms) <= _VANISHING_MASS * jnp.max(ms)
+
+    failed = (status != SUCCESS) & jnp.isfinite(q0) & jnp.isfinite(q_far)
+    # Only failed lanes need it: under vmap the check costs 33 mass evaluations for
+    # every lane, so it is skipped (lax.cond) when no lane failed.
+    blame = jax.lax.cond(
+        jnp.any(failed),
+        lambda: jax.vmap(vanishes)(q0, jnp.where(failed, q_far, q0)) & failed,
+        lambda: jnp.zeros_like(failed),
+    )
+    return jnp.where(blame, COORDINATE_SINGULARITY, status)
 
 
 # The error estimate: a second solve at `_LOOSER` times the tolerances (for
@@ -719,15 +764,17 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     """Periods, statuses, steps, executed lane-steps and error estimates."""
     from ._period import SUCCESS
 
-    T, status, steps, executed, far = _run_method(
+    T, status, steps, executed, far, q_far = _run_method(
         L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
     )
     if not m.estimate:
+        status = _blame_coordinates(L, consts, q0, q_far, status)
+        T = jnp.where(status == SUCCESS, T, jnp.nan)
         return T, status, steps, executed, jnp.full_like(T, jnp.nan)
     if far is not None:
         q1, found, band = far
         far = (q1 + band, found, band)
-    T2, status2, steps2, executed2, _ = _run_method(
+    T2, status2, steps2, executed2, _, _ = _run_method(
         L, m, devices, q0, consts, _LOOSER * rtol, _LOOSER * atol, t_max, energy_tol,
         q1=far,
     )
@@ -738,11 +785,31 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     est = jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)
     unmet = (status == SUCCESS) & ~(est <= PROMISE * rtol)
     status = jnp.where(unmet, TOLERANCE_NOT_MET, status)
-    T = jnp.where(unmet, jnp.nan, T)
+    status = _blame_coordinates(L, consts, q0, q_far, status)
+    T = jnp.where(status == SUCCESS, T, jnp.nan)
     return T, status, steps + steps2, executed + executed2, est
 
 
 TOLERANCE_NOT_MET = 12
+COORDINATE_SINGULARITY = 13
+NOT_SYMMETRIC = 14
+
+
+def _is_turning_point(L, consts, q0, q, tol):
+    """Whether q is, within `tol` in q plus rounding, on the energy level of a release
+    at rest at q0: |L(q, 0) - L(q0, 0)| <= rounding + tol |∂L/∂q(q, 0)|."""
+    dtype = q0.dtype
+    eps = jnp.finfo(dtype).eps
+    z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
+    Lr = lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts)
+
+    def one(q0, q, tol):
+        Lq, dLq = jax.value_and_grad(Lr)(q)
+        Lq0 = Lr(q0)
+        noise = 4 * eps * (jnp.abs(Lq) + jnp.abs(Lq0))
+        return jnp.abs(Lq - Lq0) <= noise + tol * jnp.abs(dLq)
+
+    return jax.vmap(one)(q0, q, tol)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
