@@ -740,7 +740,11 @@ def _blame_coordinates(L, consts, q0, q_far, status):
         ms = jnp.where(jnp.isfinite(ms), ms, 0.0)
         return jnp.min(ms) <= _VANISHING_MASS * jnp.max(ms)
 
-    failed = (status != SUCCESS) & jnp.isfinite(q0) & jnp.isfinite(q_far)
+    from ._period import NONFINITE_INPUT, SINGULAR_MASS
+
+    # A mass singular at the release point already has its own status.
+    failed = (status != SUCCESS) & (status != SINGULAR_MASS) & (status != NONFINITE_INPUT)
+    failed = failed & jnp.isfinite(q0) & jnp.isfinite(q_far)
     # Only failed lanes need it: under vmap the check costs 33 mass evaluations for
     # every lane, so it is skipped (lax.cond) when no lane failed.
     blame = jax.lax.cond(
@@ -757,7 +761,7 @@ def _blame_coordinates(L, consts, q0, q_far, status):
 _LOOSER = 10.0
 _SAFETY = 3.0
 #: A lane's period is trusted when its estimate is below this many times rtol.
-PROMISE = 10.0
+PROMISE = 100.0
 
 
 def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
