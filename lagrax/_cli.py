@@ -367,6 +367,16 @@ def _setup_jax(args):
                 f"could not join the other processes at {args.coordinator or 'the'} "
                 f"coordinator within {timeout} s: {_first_line(e)}"
             ) from None
+        # gloo announces its first connection on stdout, where the table goes: make
+        # that connection now, with stdout sent to stderr.
+        sys.stdout.flush()
+        saved = os.dup(1)
+        try:
+            os.dup2(2, 1)
+            _broadcast(0)
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
         return jax.devices()
     devices = jax.local_devices()
     if args.devices is not None:
