@@ -7,12 +7,13 @@ checked against the exact AGM period and against the one-device periods (bit for
 where the chunking is the same). Each configuration runs in fresh processes, one after
 the other, in one invocation of this script: compare the ratios within a run.
 
-    python benchmarks/scale_out.py                  # 4096 amplitudes, 3 repeats
-    python benchmarks/scale_out.py --count 16384
+    python benchmarks/scale_out.py                  # 16384 amplitudes
+    python benchmarks/scale_out.py --count 4096 --rounds 1
 
 Writes `benchmarks/results/scale_out.json`. Timing: one warm-up call (compilation,
 reported on its own), then the best and median of `--repeats` calls, each between two
-barriers across processes (`multihost_utils.sync_global_devices`), timed on process 0.
+barriers across processes (`multihost_utils.sync_global_devices`), timed on process 0;
+`--rounds` runs every configuration again in turn and keeps each one's best round.
 """
 
 import argparse
@@ -152,9 +153,10 @@ def run_config(processes, devices, args, tmp):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--count", type=int, default=4096)
+    p.add_argument("--count", type=int, default=16384)
     p.add_argument("--chunk-size", type=int, default=128)
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--out", default=os.path.join(HERE, "results", "scale_out.json"))
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
@@ -170,18 +172,31 @@ def main():
 
     import numpy as np
 
-    rows = []
+    best = {}
     with tempfile.TemporaryDirectory() as tmp:
         periods = {}
-        for processes, devices in CONFIGS:
-            result, path = run_config(processes, devices, args, tmp)
-            periods[(processes, devices)] = np.load(path)
-            rows.append(result)
-            print(
-                f"{processes} process(es) × {devices} device(s): "
-                f"{result['periods_per_s']:,.0f} periods/s",
-                flush=True,
-            )
+        # Rounds alternate the configurations, so that a burst of load from other jobs
+        # on a shared machine does not fall on one of them only; each keeps its best.
+        for k in range(args.rounds):
+            for processes, devices in CONFIGS:
+                result, path = run_config(processes, devices, args, tmp)
+                periods[(processes, devices)] = np.load(path)
+                result["rounds"] = [result["periods_per_s"]]
+                key = (processes, devices)
+                if key in best:
+                    result["rounds"] = best[key]["rounds"] + result["rounds"]
+                if key not in best or result["periods_per_s"] > max(
+                    best[key]["rounds"]
+                ):
+                    best[key] = result
+                else:
+                    best[key]["rounds"] = result["rounds"]
+                print(
+                    f"round {k + 1}: {processes} process(es) × {devices} device(s): "
+                    f"{result['periods_per_s']:,.0f} periods/s",
+                    flush=True,
+                )
+        rows = [best[c] for c in CONFIGS]
         base = rows[0]["periods_per_s"]
         for row in rows:
             row["speedup"] = row["periods_per_s"] / base
@@ -194,7 +209,7 @@ def main():
         "what": (
             f"{args.count} pendulum amplitudes 0.01-3.1 rad, sweep_periods "
             f"method='quarter', Dopri8, rtol=atol=1e-13, chunk_size={args.chunk_size} "
-            "per device; best of repeats"
+            "per device; best of repeats, best of rounds"
         ),
         "command": "python benchmarks/scale_out.py "
         + " ".join(a for a in sys.argv[1:]),

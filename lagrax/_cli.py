@@ -182,7 +182,7 @@ def _parser():
     return p
 
 
-# ---------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 # Arguments that need no JAX
 
 
@@ -302,7 +302,7 @@ def _check_paths(args):
         _check_writable(args.plot, "--plot", (".png", ".pdf", ".svg"))
 
 
-# ---------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 # JAX set-up: float64, devices, processes
 
 
@@ -331,7 +331,10 @@ def _setup_jax(args):
     try:
         # Every core a host device: a CPU device runs one chunk at a time, so one
         # device is one core. Ignored where the default backend is a GPU or TPU.
-        jax.config.update("jax_num_cpu_devices", wanted)
+        # Called from Python (`main(argv)`), JAX's device count is the caller's
+        # unless --devices says otherwise.
+        if args.devices is not None or args.from_command_line:
+            jax.config.update("jax_num_cpu_devices", wanted)
     except RuntimeError:
         # JAX already started in this process (the command called from Python): keep
         # its devices, unless more were asked for than it has.
@@ -401,7 +404,7 @@ def _broadcast(value):
     return np.asarray(multihost_utils.broadcast_one_to_all(np.asarray(value)))
 
 
-# ---------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 # Targets: built-in systems and your own Lagrangians
 
 
@@ -463,7 +466,9 @@ def _keywords_of(fn):
 def _call_with(fn, params, *args):
     """`fn(*args, **params)` with only the parameters `fn` accepts (for references)."""
     kws, var = _keywords_of(fn)
-    return fn(*args, **(params if var else {k: v for k, v in params.items() if k in kws}))
+    if not var:
+        params = {k: v for k, v in params.items() if k in kws}
+    return fn(*args, **params)
 
 
 def _call_factory(factory, params, what):
@@ -761,7 +766,7 @@ def _targets(args):
     return out
 
 
-# ---------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 # The sweep, in checkpointed blocks
 
 
@@ -969,7 +974,7 @@ def _add_reference(r, target, args):
         r["T_over_T0"] = r["period"] / (target.T0 if target.T0 else np.nan)
 
 
-# ---------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 # Output: table, files, chart
 
 
@@ -1163,7 +1168,9 @@ def _chart(results, rtol):
                 linewidth=1,
                 label=f"{r['system']}: error estimate",
             )
-    bottom.axhline(rtol, color="0.4", linestyle=":", linewidth=1, label=f"rtol {rtol:g}")
+    bottom.axhline(
+        rtol, color="0.4", linestyle=":", linewidth=1, label=f"rtol {rtol:g}"
+    )
     top.set_ylabel("T / T₀" if normalized else "period T")
     ys = [
         (r["T_over_T0"] if normalized else r["period"])[r["status"] == 0]
@@ -1310,7 +1317,7 @@ def _run_sweep(args):
     return 1 if failed else 0
 
 
-# ---------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 # lagrax systems
 
 
@@ -1360,13 +1367,14 @@ def _systems_lines():
     return lines
 
 
-# ---------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------
 
 
 def main(argv=None) -> int:
     """Entry point of the `lagrax` console script."""
     try:
         args = _parser().parse_args(argv)
+        args.from_command_line = argv is None
         _validate(args)
         if args.command == "systems":
             import jax
