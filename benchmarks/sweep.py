@@ -1,265 +1,472 @@
 """Periods per second over a pendulum amplitude sweep, against the exact period.
 
-4096 amplitudes 0.01–3.1 rad (g = r = 1), period by integration to the turning point,
-float64, max relative error against the AGM period. Side by side in one run:
+4096 amplitudes 0.01–3.1 rad (g = r = 1), float64, max relative error against the AGM
+period. Side by side, in one invocation (each group in a fresh worker process, one
+after the other):
 
-- scipy `solve_ivp` DOP853 + terminal event on θ̇, a Python loop (a subsample, timed and
-  extrapolated to the whole sweep);
-- a hand-written naive diffrax baseline: `-sin θ`, Dopri8, Event on θ̇ with Newton
-  root finding on the dense output, one unsorted `jit(vmap(...))` batch of all 4096;
-- `lagrax.sweep_periods`, method "half" (the same quantity as the others: T = 2 × time
-  to the next turning point) and method "quarter" (T = 4 × time to maximum speed);
-- heyoka.py: its `lagrangian()` and scalar Taylor integrator with a terminal event, a
-  Python loop over the amplitudes.
+- heyoka.py at its best on this machine: its scalar Taylor integrator with a terminal
+  event on θ (direction negative, T = 4t, tol = eps) in a Python loop, pinned to one
+  core; its batch mode at `recommended_simd_size()` (a non-terminal batch event whose
+  callback records each lane's first crossing); and 2 Python threads with one scalar
+  integrator each over half the amplitudes (whole machine). All reported; the best is
+  quoted.
+- scipy `solve_ivp` DOP853 + terminal event, a Python loop (subsample, extrapolated);
+- the naive diffrax baseline: hand-written `-sin θ`, Dopri8, `Event` with Newton root
+  finding, one unsorted `jit(vmap(diffeqsolve))` batch;
+- lagrax `sweep_periods`, methods "quarter", "half" and "matched" (the default), at
+  rtol = atol = 1e-12 … 1e-14, with the per-lane error estimate off (the kernel alone)
+  and on (the default), on one core (one JAX device, `taskset` to core 0) and on the
+  whole machine (one JAX device per core).
 
-Usage: `python benchmarks/sweep.py [--quick]`; writes benchmarks/results/sweep.json and
-sweep.png.
+For every lagrax row it prints periods/s, max relative error, steps per lane, the
+useful fraction of lane-steps, ns per lane-step, and the ceiling: the time of the
+vector field alone for the same number of stage evaluations (13 per Dopri8 step), so
+that the loop's overhead can be read off. Compile time of each configuration is
+measured on its own (first call, `jax.clear_caches()` before).
+
+    python benchmarks/sweep.py [--quick]
+    python benchmarks/sweep.py --gpu     # 1e4 … 1e6 lanes on the default JAX backend
+
+Writes `benchmarks/results/sweep.json` and `sweep.png` (or `sweep_gpu.json`).
 """
 
 import argparse
 import json
 import os
 import platform
+import subprocess
+import sys
 import time
-
-import jax
-
-
-jax.config.update("jax_enable_x64", True)
-
-import diffrax as dfx  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-import optimistix as optx  # noqa: E402
-
-import lagrax  # noqa: E402
-from lagrax.systems import pendulum  # noqa: E402
 
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESULTS = os.path.join(HERE, "results")
+TOLS = (1e-12, 1e-13, 1e-14)
 
 
-def best_of(fn, repeats):
-    times = []
-    out = None
+def _amplitudes(n):
+    import numpy as np
+
+    return np.linspace(0.01, 3.1, n)
+
+
+def _exact(a):
+    import jax
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)  # the reference in float64, always
+
+    from lagrax.systems import pendulum
+
+    period = getattr(pendulum, "period", None) or pendulum.pendulum_period
+    return np.asarray(period(a))
+
+
+def _best(fn, repeats):
+    times, out = [], None
     for _ in range(repeats):
         t = time.perf_counter()
-        out = jax.block_until_ready(fn())
+        out = fn()
+        try:
+            import jax
+
+            out = jax.block_until_ready(out)
+        except Exception:
+            pass
         times.append(time.perf_counter() - t)
-    return out, min(times), float(np.median(times))
+    return out, min(times)
 
 
-def scipy_periods(a, rtol, atol):
-    from scipy.integrate import solve_ivp
+def _row(name, T, exact, seconds, **extra):
+    import numpy as np
 
-    def f(t, y):
-        return [y[1], -np.sin(y[0])]
-
-    def turning(t, y):
-        return y[1]
-
-    turning.terminal = True
-    turning.direction = 1.0  # θ̇: 0 -> negative -> 0 at the far turning point
-    T = np.empty_like(a)
-    for i, x in enumerate(a):
-        sol = solve_ivp(
-            f,
-            (0, 1e3),
-            [x, 0.0],
-            method="DOP853",
-            rtol=rtol,
-            atol=atol,
-            events=turning,
-        )
-        T[i] = 2 * sol.t_events[0][0]
-    return T
-
-
-def naive_diffrax(rtol, atol):
-    def f(t, y, args):
-        return y[1], -jnp.sin(y[0])
-
-    event = dfx.Event(
-        lambda t, y, args, **kw: -y[1],
-        root_finder=optx.Newton(rtol=1e-12, atol=1e-12),
-        direction=False,
+    T = np.asarray(T)
+    ok = np.isfinite(T)
+    err = float(np.max(np.abs(T[ok] / exact[: len(T)][ok] - 1))) if ok.any() else None
+    return dict(
+        name=name,
+        periods_per_s=len(T) / seconds,
+        seconds=seconds,
+        max_rel_error=err,
+        failed=int((~ok).sum()),
+        n=len(T),
+        **extra,
     )
 
-    @jax.jit
-    @jax.vmap
-    def periods(x):
-        sol = dfx.diffeqsolve(
-            dfx.ODETerm(f),
-            dfx.Dopri8(),
-            0.0,
-            1e3,
-            None,
-            (x, 0.0 * x),
-            stepsize_controller=dfx.PIDController(rtol=rtol, atol=atol),
-            event=event,
-            max_steps=4096,
-            throw=False,
-        )
-        return 2 * sol.ts[-1], sol.stats["num_steps"]
 
-    return periods
+# ------------------------------------------------------------------------ workers
 
 
-def heyoka_periods(a):
+def work_heyoka(args):
+    import threading
+
     import heyoka as hy
+    import numpy as np
 
+    a = _amplitudes(args.n)
+    exact = _exact(a)
     x, v = hy.make_vars("x", "v")
     system = hy.lagrangian(0.5 * v**2 + hy.cos(x), [x], [v])
-    ev = hy.t_event(v, direction=hy.event_direction.positive)
-    ta = hy.taylor_adaptive(system, [1.0, 0.0], t_events=[ev])
 
-    def run():
-        T = np.empty_like(a)
-        for i in range(len(a)):
+    def scalar_integrator():
+        ev = hy.t_event(x, direction=hy.event_direction.negative)
+        return hy.taylor_adaptive(system, [1.0, 0.0], t_events=[ev])
+
+    def scalar_loop(ta, amps):
+        T = np.empty_like(amps)
+        for i, a0 in enumerate(amps):
             ta.time = 0.0
-            ta.state[:] = (a[i], 0.0)
+            ta.state[:] = (a0, 0.0)
             ta.propagate_until(1e3)
-            T[i] = 2 * ta.time
+            T[i] = 4 * ta.time
         return T
 
-    return run, hy.__version__
+    rows = []
+    if args.mode == "scalar":
+        ta = scalar_integrator()
+        scalar_loop(ta, a[:64])
+        T, sec = _best(lambda: scalar_loop(ta, a), args.repeats)
+        rows.append(
+            _row(f"heyoka.py {hy.__version__} scalar, 1 core", T, exact, sec)
+        )
+        B = hy.recommended_simd_size()
+        first = np.full(B, np.nan)
+
+        def record(ta, t, d_sgn, idx):
+            if np.isnan(first[idx]):
+                first[idx] = t
+
+        ev = hy.nt_event_batch(x, record, direction=hy.event_direction.negative)
+        tb = hy.taylor_adaptive_batch(
+            system, np.array([[1.0] * B, [0.0] * B]), nt_events=[ev]
+        )
+
+        def batch():
+            T = np.full_like(a, np.nan)
+            for i in range(0, len(a), B):
+                k = min(B, len(a) - i)
+                tb.set_time(0.0)
+                tb.state[0, :] = np.resize(a[i : i + k], B)
+                tb.state[1, :] = 0.0
+                first[:] = np.nan
+                t = 0.0
+                while np.isnan(first).any():
+                    t += 1.0
+                    tb.propagate_until(t)
+                T[i : i + k] = 4 * first[:k]
+            return T
+
+        T, sec = _best(batch, args.repeats)
+        rows.append(
+            _row(f"heyoka.py batch (SIMD {B}), 1 core", T, exact, sec)
+        )
+    else:
+        integrators = [scalar_integrator(), scalar_integrator()]
+        halves = np.array_split(a, 2)
+
+        def threaded():
+            out = [None, None]
+
+            def go(i):
+                out[i] = scalar_loop(integrators[i], halves[i])
+
+            ts = [threading.Thread(target=go, args=(i,)) for i in range(2)]
+            for t in ts:
+                t.start()
+            for t in ts:
+                t.join()
+            return np.concatenate(out)
+
+        threaded()
+        T, sec = _best(threaded, args.repeats)
+        rows.append(_row("heyoka.py scalar, 2 threads", T, exact, sec))
+    return rows
+
+
+def work_jax(args):
+    import jax
+
+    jax.config.update("jax_num_cpu_devices", args.devices)
+    jax.config.update("jax_enable_x64", True)
+    import diffrax as dfx
+    import jax.numpy as jnp
+    import numpy as np
+    import optimistix as optx
+
+    import lagrax
+    from lagrax._mechanics import _accelerations
+    from lagrax.systems import pendulum
+
+    a_np = _amplitudes(args.n)
+    a = jnp.asarray(a_np)
+    exact = _exact(a_np)
+    L = pendulum.lagrangian()
+    rows = []
+    where = "1 core" if args.devices == 1 else f"{args.devices} devices"
+
+    if args.devices == 1:
+        from scipy.integrate import solve_ivp
+
+        def f(t, y):
+            return [y[1], -np.sin(y[0])]
+
+        def turning(t, y):
+            return y[1]
+
+        turning.terminal, turning.direction = True, 1.0
+        sub = a_np[:: 64 if not args.quick else 16]
+        t0 = time.perf_counter()
+        T = [
+            2
+            * solve_ivp(
+                f, (0, 1e3), [x, 0.0], "DOP853", rtol=1e-13, atol=1e-13, events=turning
+            ).t_events[0][0]
+            for x in sub
+        ]
+        sec = (time.perf_counter() - t0) * len(a_np) / len(sub)
+        err = float(np.max(np.abs(np.asarray(T) / _exact(sub) - 1)))
+        rows.append(
+            dict(
+                name="scipy DOP853 loop, rtol 1e-13",
+                periods_per_s=len(a_np) / sec,
+                max_rel_error=err,
+                failed=0,
+                n=len(sub),
+                note="subsample, extrapolated",
+            )
+        )
+
+        event = dfx.Event(
+            lambda t, y, args, **kw: -y[1],
+            root_finder=optx.Newton(rtol=1e-12, atol=1e-12),
+            direction=False,
+        )
+
+        @jax.jit
+        @jax.vmap
+        def naive(x):
+            sol = dfx.diffeqsolve(
+                dfx.ODETerm(lambda t, y, args: (y[1], -jnp.sin(y[0]))),
+                dfx.Dopri8(),
+                0.0,
+                1e3,
+                None,
+                (x, 0.0 * x),
+                stepsize_controller=dfx.PIDController(rtol=1e-13, atol=1e-13),
+                event=event,
+                max_steps=4096,
+                throw=False,
+            )
+            return 2 * sol.ts[-1]
+
+        naive(a)
+        T, sec = _best(lambda: naive(a), args.repeats)
+        rows.append(_row("naive diffrax vmap, rtol 1e-13", T, exact, sec))
+
+        # The ceiling: the vector field alone, 13 evaluations per lane-step.
+        def accel(x, v):
+            qddot, _ = _accelerations(L, x[None], v[None], jnp.zeros((), x.dtype))
+            return qddot[0]
+
+        acc = jax.vmap(accel)
+        evals = 13 * 26
+
+        @jax.jit
+        def field_only(x):
+            def body(i, c):
+                x, v = c
+                return x + 1e-9 * acc(x, v), v
+
+            return jax.lax.fori_loop(0, evals, body, (x, 0 * x))
+
+        field_only(a)
+        _, sec = _best(lambda: field_only(a), args.repeats)
+        ceiling_ns = sec / (len(a_np) * evals / 13) * 1e9
+    else:
+        ceiling_ns = None
+
+    configs = [
+        ("quarter", 1e-12, False),
+        ("quarter", 1e-13, False),
+        ("half", 1e-13, False),
+        ("half", 1e-14, False),
+        ("matched", 1e-12, False),
+        ("matched", 1e-13, False),
+        ("matched", 1e-13, True),
+    ]
+    if args.quick:
+        configs = [c for c in configs if c[1] == 1e-13]
+    for method, tol, estimate in configs:
+        run = lambda: lagrax.sweep_periods(
+            L, a, method=method, rtol=tol, atol=tol, error_estimate=estimate
+        )
+        jax.clear_caches()
+        t0 = time.perf_counter()
+        jax.block_until_ready(run())
+        compile_s = time.perf_counter() - t0
+        res, sec = _best(run, args.repeats)
+        steps = float(np.mean(np.asarray(res.num_steps)))
+        executed = float(res.lane_steps_executed)
+        label = "" if estimate else ", no estimate"
+        rows.append(
+            _row(
+                f"lagrax {method} rtol {tol:g}{label}, {where}",
+                res.periods,
+                exact,
+                sec,
+                compile_s=compile_s,
+                steps_per_lane=steps,
+                useful_fraction=float(res.useful_fraction),
+                ns_per_lane_step=sec / executed * 1e9 * args.devices,
+                ceiling_ns_per_lane_step=ceiling_ns,
+                max_error_estimate=(
+                    None
+                    if res.error_estimate is None
+                    else float(np.nanmax(np.asarray(res.error_estimate)))
+                ),
+            )
+        )
+    return rows
+
+
+def work_gpu(args):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    import lagrax
+    from lagrax.systems import pendulum
+
+    L = pendulum.lagrangian()
+    rows = []
+    device = str(jax.devices()[0].device_kind)
+    for n in (10_000, 100_000, 1_000_000):
+        a_np = _amplitudes(n)
+        a = jnp.asarray(a_np)
+        exact = _exact(a_np)
+        for method in ("quarter", "matched"):
+            for width in (4096, 65536):
+                run = lambda: lagrax.sweep_periods(
+                    L, a, method=method, chunk_size=width, error_estimate=False
+                )
+                t0 = time.perf_counter()
+                jax.block_until_ready(run())
+                compile_s = time.perf_counter() - t0
+                res, sec = _best(run, 3)
+                rows.append(
+                    _row(
+                        f"lagrax {method} n={n} width={width} on {device}",
+                        res.periods,
+                        exact,
+                        sec,
+                        compile_s=compile_s,
+                        useful_fraction=float(res.useful_fraction),
+                    )
+                )
+                print(rows[-1], flush=True)
+    return rows
+
+
+# --------------------------------------------------------------------------- main
+
+
+def spawn(kind, n, repeats, quick, pin=None, **kw):
+    cmd = [sys.executable, __file__, "--worker", kind, "--n", str(n)]
+    cmd += ["--repeats", str(repeats)] + (["--quick"] if quick else [])
+    for k, v in kw.items():
+        cmd += [f"--{k}", str(v)]
+    if pin is not None:
+        cmd = ["taskset", "-c", str(pin)] + cmd
+    out = subprocess.run(cmd, capture_output=True, text=True)
+    if out.returncode != 0:
+        print(out.stderr[-3000:], file=sys.stderr)
+        return []
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main():
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--quick", action="store_true", help="small run")
-    args = parser.parse_args()
-    n = 512 if args.quick else 4096
-    repeats = 2 if args.quick else 3
-    a_np = np.linspace(0.01, 3.1, n)
-    a = jnp.asarray(a_np)
-    exact = np.asarray(pendulum.pendulum_period(a))
-    rows = {}
-
-    def record(name, T, best, median, compile_s=None, note="", **extra):
-        err = float(np.max(np.abs(np.asarray(T) / exact[: len(T)] - 1)))
-        rows[name] = dict(
-            periods_per_s=len(T) / best if best else None,
-            best_s=best,
-            median_s=median,
-            compile_s=compile_s,
-            max_rel_error=err,
-            n=len(T),
-            note=note,
-            **extra,
-        )
+    p = argparse.ArgumentParser()
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--gpu", action="store_true")
+    p.add_argument("--worker")
+    p.add_argument("--mode", default="scalar")
+    p.add_argument("--devices", type=int, default=1)
+    p.add_argument("--n", type=int, default=4096)
+    p.add_argument("--repeats", type=int, default=5)
+    args = p.parse_args()
+    if args.worker:
+        fn = {"heyoka": work_heyoka, "jax": work_jax, "gpu": work_gpu}[args.worker]
+        print(json.dumps(fn(args)))
+        return
+    if args.gpu:
+        rows = work_gpu(args)
+        name = "sweep_gpu.json"
+    else:
+        n = 1024 if args.quick else args.n
+        r = 2 if args.quick else args.repeats
+        cores = os.cpu_count()
+        rows = []
+        rows += spawn("heyoka", n, r, args.quick, pin=0, mode="scalar")
+        rows += spawn("heyoka", n, r, args.quick, mode="threads")
+        rows += spawn("jax", n, r, args.quick, pin=0, devices=1)
+        rows += spawn("jax", n, r, args.quick, devices=cores)
+        name = "sweep_quick.json" if args.quick else "sweep.json"
+    best_heyoka = max(
+        (x["periods_per_s"] for x in rows if x["name"].startswith("heyoka")),
+        default=None,
+    )
+    print(f"{'':58s} {'periods/s':>10s} {'vs heyoka':>9s} {'max err':>8s} "
+          f"{'steps':>6s} {'useful':>6s} {'ns/ls':>6s} {'ceil':>5s} {'compile':>7s}")
+    for x in rows:
+        ratio = x["periods_per_s"] / best_heyoka if best_heyoka else float("nan")
+        f = lambda k, fmt: (fmt % x[k]) if x.get(k) is not None else "-"
         print(
-            f"{name:<28} {len(T) / best:>12,.0f} periods/s  max rel err {err:.1e}"
-            f"  {note}"
+            f"{x['name']:58s} {x['periods_per_s']:10,.0f} {ratio:9.2f} "
+            f"{f('max_rel_error', '%.1e'):>8s} {f('steps_per_lane', '%.1f'):>6s} "
+            f"{f('useful_fraction', '%.3f'):>6s} {f('ns_per_lane_step', '%.0f'):>6s} "
+            f"{f('ceiling_ns_per_lane_step', '%.0f'):>5s} {f('compile_s', '%.1f'):>7s}"
+            + (f"  failed {x['failed']}" if x.get("failed") else "")
         )
-
-    # scipy, a subsample, extrapolated.
-    step = 32 if not args.quick else 16
-    sub = a_np[::step]
-    t = time.perf_counter()
-    T_sc = scipy_periods(sub, 1e-13, 1e-13)
-    dt = time.perf_counter() - t
-    err = float(np.max(np.abs(T_sc / exact[::step] - 1)))
-    rows["scipy DOP853 loop"] = dict(
-        periods_per_s=len(sub) / dt,
-        best_s=dt * n / len(sub),
-        max_rel_error=err,
-        n=len(sub),
-        note=f"every {step}th amplitude timed, extrapolated; rtol=atol=1e-13",
-    )
-    print(
-        f"{'scipy DOP853 loop':<28} {len(sub) / dt:>12,.0f} periods/s  max rel err "
-        f"{err:.1e}  (subsample of {len(sub)}, extrapolated)"
-    )
-
-    # naive diffrax: one unsorted batch.
-    for tol in (1e-13, 1e-14):
-        fn = naive_diffrax(tol, tol)
-        t = time.perf_counter()
-        jax.block_until_ready(fn(a))
-        comp = time.perf_counter() - t
-        (T, steps), best, med = best_of(lambda: fn(a), repeats)
-        useful = float(jnp.sum(steps) / (jnp.max(steps) * len(steps)))
-        record(
-            f"naive diffrax rtol={tol:g}",
-            T,
-            best,
-            med,
-            comp,
-            note=f"one batch, useful lane-steps {useful:.0%}",
-            useful_fraction=useful,
-        )
-
-    L = pendulum.lagrangian()
-    for method, tol in (("half", 1e-14), ("quarter", 1e-13)):
-        for chunk in (256, 512):
-            run = lambda: lagrax.sweep_periods(
-                L, a, method=method, rtol=tol, atol=tol, chunk_size=chunk
-            )
-            t = time.perf_counter()
-            jax.block_until_ready(run())
-            comp = time.perf_counter() - t
-            res, best, med = best_of(run, repeats)
-            record(
-                f"lagrax {method} {tol:g} chunk {chunk}",
-                res.periods,
-                best,
-                med,
-                comp,
-                note=f"useful lane-steps {float(res.useful_fraction):.0%}",
-                useful_fraction=float(res.useful_fraction),
-            )
-
-    try:
-        run, version = heyoka_periods(a_np)
-        run()
-        T, best, med = best_of(run, repeats)
-        record(
-            f"heyoka.py {version} (scalar)",
-            T,
-            best,
-            med,
-            note="scalar Taylor integrator, Python loop, one core",
-        )
-    except Exception as e:  # not installable here: say so, keep the others
-        print(f"heyoka.py skipped: {e}")
-
     os.makedirs(RESULTS, exist_ok=True)
-    meta = dict(
-        machine=f"{platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} cores (shared, noisy)",
-        jax=jax.__version__,
-        n=n,
-        quick=args.quick,
-    )
-    with open(os.path.join(RESULTS, "sweep.json"), "w") as f:
-        json.dump(dict(meta=meta, results=rows), f, indent=2)
+    import jax
 
+    meta = dict(
+        machine=f"{platform.machine()}, {os.cpu_count()} cores (shared)",
+        processor=platform.processor(),
+        jax=jax.__version__,
+        best_heyoka_periods_per_s=best_heyoka,
+    )
+    with open(os.path.join(RESULTS, name), "w") as fh:
+        json.dump(dict(meta=meta, results=rows), fh, indent=2)
+    if args.gpu:
+        return
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    names = list(rows)
-    ax.barh(names, [rows[k]["periods_per_s"] for k in names])
+    fig, ax = plt.subplots(figsize=(8, 0.32 * len(rows) + 1.2))
+    names = [x["name"] for x in rows]
+    speed = [x["periods_per_s"] for x in rows]
+    colors = ["C1" if n.startswith("heyoka") else "C0" if "lagrax" in n else "C7"
+              for n in names]
+    ax.barh(names, speed, color=colors)
+    ax.invert_yaxis()
     ax.set_xscale("log")
     ax.set_xlabel("periods per second (higher is better)")
-    for i, k in enumerate(names):
-        ax.text(
-            rows[k]["periods_per_s"],
-            i,
-            f" {rows[k]['max_rel_error']:.0e}",
-            va="center",
-            fontsize=8,
-        )
-    ax.set_title(
-        f"Pendulum sweep, {n} amplitudes 0.01–3.1 rad\n(bar label: max relative error)"
-    )
+    for i, x in enumerate(rows):
+        if x.get("max_rel_error") is not None:
+            ax.text(x["periods_per_s"], i, f" {x['max_rel_error']:.0e}", va="center",
+                    fontsize=7)
+    ax.set_title(f"Pendulum sweep, {rows[0]['n'] if rows else 0} amplitudes "
+                 "0.01–3.1 rad (label: max relative error)", fontsize=9)
+    ax.tick_params(axis="y", labelsize=7)
     fig.tight_layout()
-    fig.savefig(os.path.join(RESULTS, "sweep.png"), dpi=120)
-    print("wrote", os.path.join(RESULTS, "sweep.json"), "and sweep.png")
+    fig.savefig(os.path.join(RESULTS, "sweep.png" if not args.quick else
+                             "sweep_quick.png"), dpi=120)
+    print("wrote", os.path.join(RESULTS, name))
 
 
 if __name__ == "__main__":

@@ -122,11 +122,11 @@ def _parser():
     s.add_argument(
         "--method",
         default=None,
-        choices=("quarter", "half", "full"),
-        help="how much of each orbit to integrate (see lagrax.period). Default "
+        choices=("matched", "quarter", "half", "full"),
+        help="how much of each orbit to integrate (see lagrax.sweep_periods). Default "
         "'quarter' for the mirror-symmetric pendulum and cycloid (exact there and best "
-        "conditioned near π), 'half' for every other system (right for any "
-        "time-reversible L, asymmetric wells included)",
+        "conditioned near π), 'matched' for every other system (two quarter legs "
+        "from both turning points: any time-reversible L, asymmetric wells included)",
     )
     s.add_argument(
         "--reference",
@@ -418,7 +418,7 @@ class _Target:
     T0: float | None = None
     default_range: tuple | None = None
     bounds: tuple | None = None  # (lo, hi) with lo < amplitude <= hi, or None
-    method: str = "half"
+    method: str = "matched"
     coordinate: str = "q"
     extra: dict = field(default_factory=dict)
 
