@@ -16,8 +16,6 @@ from ._particles import (
 )
 from ._period import (
     period as period,
-    STATUS_CODES as STATUS_CODES,
-    status_message as status_message,
     sweep_periods as sweep_periods,
     SweepResult as SweepResult,
 )
@@ -25,6 +23,13 @@ from ._quadrature import (
     quadrature_period as quadrature_period,
     quadrature_status_message as quadrature_status_message,
     QuadratureResult as QuadratureResult,
+)
+from ._results import (
+    RESULTS as RESULTS,
+    status_code as status_code,
+    STATUS_CODES as STATUS_CODES,
+    status_message as status_message,
+    status_result as status_result,
 )
 from ._simulate import simulate as simulate, vector_field as vector_field
 from ._term import LagrangianTerm as LagrangianTerm

@@ -21,9 +21,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._checks import (
+    as_real_array,
+    as_time,
+    call_user as _call_user,
+    check_callable,
+    describe,
+    is_concrete,
+    positive_scalar,
+)
 from ._custom_types import GeneralizedForce, Lagrangian
-from ._mechanics import _call_user
-from ._misc import as_real_array, check_callable, describe, is_concrete
 
 
 Positions = Callable[[jax.Array, jax.Array], jax.Array]
@@ -352,15 +359,7 @@ def _violation(values, jac, r, rtol):
 
 
 def _time_and_rtol(t, rtol, dtype):
-    t = as_real_array(t, "t") if not isinstance(t, int | float) else jnp.asarray(t)
-    if jnp.ndim(t) != 0:
-        raise ValueError(f"`t` must be a scalar time; got shape {jnp.shape(t)}.")
-    rtol = as_real_array(rtol, "rtol") if not isinstance(rtol, int | float) else rtol
-    if jnp.ndim(rtol) != 0:
-        raise ValueError(f"`rtol` must be a scalar; got shape {jnp.shape(rtol)}.")
-    if is_concrete(rtol) and not float(rtol) > 0:
-        raise ValueError(f"`rtol` must be positive; got {float(rtol)}.")
-    return jnp.asarray(t, dtype), jnp.asarray(rtol, dtype)
+    return as_time(t, "t", dtype), positive_scalar(rtol, "rtol", dtype)
 
 
 def degrees_of_freedom(constraints: Callable, r, t=0.0, *, rtol=1e-8):

@@ -11,7 +11,7 @@ $L = \frac12 m(q)\dot q^2 - V(q)$, symmetric potential or not) the return leg is
 time-reversed outgoing leg, so $T = 2\,t(q_0 \to q_1)$: half the work. Nothing here
 assumes a centre of oscillation; the turning points are found wherever they are.
 
-Numerical choices (each one a trap measured in DESIGN.md):
+Numerical choices (each one a measured trap):
 
 - Each lane is integrated in its own units, $x = q/|q_0|$ and $s = t/\tau$ with
   $\tau = \sqrt{|q_0| / |\ddot q(q_0)|}$, so that `rtol`/`atol` mean the same thing at
@@ -31,8 +31,6 @@ Numerical choices (each one a trap measured in DESIGN.md):
 """
 
 import functools
-import math
-import warnings
 from collections.abc import Callable, Sequence
 
 import diffrax as dfx
@@ -43,98 +41,35 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array, Float, Int
 
+from ._checks import (
+    as_real_array,
+    check_callable,
+    check_choice,
+    check_devices,
+    check_finite,
+    check_instance,
+    check_one_dof,
+    is_concrete,
+    positive_int,
+    positive_scalar,
+    tolerances,
+)
 from ._custom_types import Lagrangian, RealScalarLike
-from ._mechanics import _accelerations, _check_lagrangian
-from ._misc import as_real_array, check_callable, check_finite, is_concrete
-
-
-# --------------------------------------------------------------------------- statuses
-
-SUCCESS = 0
-NOT_OSCILLATING = 1
-MAX_STEPS = 2
-SINGULAR_MASS = 3
-ROOT_FIND_FAILED = 4
-ENERGY_DRIFT = 5
-SOLVER_FAILED = 6
-NONFINITE_INPUT = 7
-
-_STATUS = {
-    SUCCESS: ("success", "success"),
-    NOT_OSCILLATING: (
-        "not_oscillating",
-        "does not oscillate: released at an equilibrium (zero acceleration), or the "
-        "coordinate ran away (|q - q0| > 1e6 max(|q0|, 1); also what a path through a "
-        "coordinate singularity looks like, e.g. the cycloid in θ released near its "
-        "cusp sails through the other cusp), or no turning point before t_max",
-    ),
-    MAX_STEPS: (
-        "max_steps",
-        "max_steps reached before the next turning point: raise max_steps or loosen "
-        "the tolerances; thousands of steps for one swing usually mean a coordinate "
-        "singularity on the path (e.g. the cycloid's cusp in θ; reparametrize)",
-    ),
-    SINGULAR_MASS: (
-        "singular_mass",
-        "singular or indefinite mass matrix ∂²L/∂q̇² (at the release point or where "
-        "the solve stopped): a coordinate singularity; change coordinates with "
-        "lagrax.reparametrize",
-    ),
-    ROOT_FIND_FAILED: (
-        "root_find_failed",
-        "turning point not located: the refinement to q̇ = 0 did not converge (zero "
-        "or non-finite acceleration at the turning point)",
-    ),
-    ENERGY_DRIFT: (
-        "energy_drift",
-        "energy drift beyond energy_tol between release and turning point: the "
-        "trajectory is not trustworthy (tighten the tolerances, or a coordinate "
-        "singularity was crossed)",
-    ),
-    SOLVER_FAILED: (
-        "solver_failed",
-        "the ODE solver failed (step size collapsed or non-finite state) away from "
-        "any detectable singularity of the mass matrix",
-    ),
-    NONFINITE_INPUT: ("nonfinite_input", "the release point q0 is not finite"),
-}
-
-#: Status codes of `sweep_periods` and `period`: `{code: (name, message)}`.
-STATUS_CODES = {code: name for code, (name, _) in _STATUS.items()}
-
-
-def status_message(code) -> str:
-    r"""The meaning of a period status code, as one line of text.
-
-    | code | name | meaning |
-    | --- | --- | --- |
-    | 0 | `success` | the period is trustworthy to about the tolerances |
-    | 1 | `not_oscillating` | released at an equilibrium, no turning point before `t_max`, or the coordinate ran away |
-    | 2 | `max_steps` | `max_steps` reached before the next turning point |
-    | 3 | `singular_mass` | mass matrix singular/indefinite at release or where the solve stopped |
-    | 4 | `root_find_failed` | the turning point could not be located exactly |
-    | 5 | `energy_drift` | energy not conserved to `energy_tol`: the trajectory is garbage |
-    | 6 | `solver_failed` | other solver failure (collapsed step size, non-finite state) |
-    | 7 | `nonfinite_input` | `q0` is NaN or infinite |
-
-    **Arguments:** `code`: an int (or integer scalar array).
-
-    **Returns:** the message, e.g. `"success"`.
-
-    **Raises:** `ValueError` for an unknown code.
-    """  # noqa: E501
-    try:
-        key = int(code)
-        integral = key == code
-    except (TypeError, ValueError):
-        integral = False
-    if not integral:
-        raise ValueError(f"`code` must be an integer status code; got {code!r}.")
-    if key not in _STATUS:
-        raise ValueError(
-            f"`code` must be one of the status codes {sorted(_STATUS)}; got {key}."
-        )
-    return _STATUS[key][1]
+from ._mechanics import _accelerations, _jacobi
+from ._results import (
+    ENERGY_DRIFT,
+    first_of,
+    MAX_STEPS,
+    NONFINITE_INPUT,
+    NOT_OSCILLATING,
+    ROOT_FIND_FAILED,
+    SINGULAR_MASS,
+    SOLVER_FAILED,
+    STATUS_CODES as STATUS_CODES,
+    status_message as status_message,
+    status_result,
+    SUCCESS,
+)
 
 
 # ------------------------------------------------------------------ one lane, traced
@@ -145,13 +80,6 @@ _ESCAPE = 1e6
 _NO_LIMIT = 1e30
 
 
-def _energy(L, q, qdot, t):
-    """The Jacobi integral and the size of its two terms (for its rounding error)."""
-    value, p = jax.value_and_grad(L, argnums=1)(q, qdot, t)
-    kinetic = jnp.dot(qdot, p)
-    return kinetic - value, jnp.abs(kinetic) + jnp.abs(value)
-
-
 class _Lane(eqx.Module):
     """Outputs of one lane (stacked over lanes under vmap)."""
 
@@ -160,7 +88,7 @@ class _Lane(eqx.Module):
     steps: Array  # steps of every batched loop of the lane, shape (n_loops,)
 
 
-_METHODS = {"half": 2, "full": 1, "quarter": 4}
+_METHODS = ("half", "full", "quarter")
 _REFINE_SUBSTEPS = 4
 
 
@@ -285,15 +213,12 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
             & jnp.isfinite(a1)
             & (worst <= 10.0)
         )
-        status = jnp.select(
-            [
-                good & refined,
-                good,
-                escaped | ran_out,
-                sol.result == dfx.RESULTS.max_steps_reached,
-            ],
-            [SUCCESS, ROOT_FIND_FAILED, NOT_OSCILLATING, MAX_STEPS],
-            SOLVER_FAILED,
+        status = first_of(
+            (good & refined, SUCCESS),
+            (good, ROOT_FIND_FAILED),
+            (escaped | ran_out, NOT_OSCILLATING),
+            (sol.result == dfx.RESULTS.max_steps_reached, MAX_STEPS),
+            default=SOLVER_FAILED,
         )
         stop = (
             jnp.where(good, s1, sol.ts[-1]),
@@ -328,8 +253,8 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
 
     # Energy check where the solve stopped (normally a turning point).
     q_end, qdot_end, t_end = q0 + Qs * x_end, Vs * v_end, tau * s_last
-    h0, size0 = _energy(L, q0[None], zero[None], zero)
-    h1, size1 = _energy(L, q_end[None], qdot_end[None], t_end)
+    h0, size0 = _jacobi(L, q0[None], zero[None], zero)
+    h1, size1 = _jacobi(L, q_end[None], qdot_end[None], t_end)
     scale = jnp.abs(M0 * a0s) * Qs
     drift = jnp.abs(h1 - h0)
     tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
@@ -350,10 +275,11 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
             ),
         ),
     )
-    status = jnp.select(
-        [~finite_q0, ~start_ok, ~moving],
-        [NONFINITE_INPUT, SINGULAR_MASS, NOT_OSCILLATING],
-        status,
+    status = first_of(
+        (~finite_q0, NONFINITE_INPUT),
+        (~start_ok, SINGULAR_MASS),
+        (~moving, NOT_OSCILLATING),
+        default=status,
     )
     T = jnp.where(status == SUCCESS, tau * s_total, jnp.nan)
     return _Lane(T, status.astype(jnp.int32), steps.astype(jnp.int32))
@@ -365,62 +291,28 @@ class _NoPeriodError(ValueError, RuntimeError):
     pass
 
 
-def _check_method(method):
-    if method not in _METHODS:
-        raise ValueError(f"`method` must be one of {sorted(_METHODS)}; got {method!r}.")
-    return method
-
-
-# ------------------------------------------------------------------------ checking
-
-
-def _check_solver(solver):
-    if not isinstance(solver, dfx.AbstractAdaptiveSolver):
-        raise TypeError(
-            "`solver` must be an adaptive diffrax solver (the turning point is found "
-            f"with adaptive steps), e.g. diffrax.Dopri8(); got {type(solver).__name__}."
-        )
-
-
-def _check_positive_int(x, name):
-    if isinstance(x, bool) or not isinstance(x, int | np.integer) or x <= 0:
-        raise ValueError(f"`{name}` must be a positive int; got {x!r}.")
-    return int(x)
-
-
-def _check_scalar(x, name, dtype, *, optional=False):
-    if x is None and optional:
-        return None
-    x = as_real_array(x, name) if not isinstance(x, int | float) else jnp.asarray(x)
-    if jnp.ndim(x) != 0:
-        raise ValueError(f"`{name}` must be a scalar; got shape {jnp.shape(x)}.")
-    if is_concrete(x):
-        value = float(x)
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"`{name}` must be a positive finite number; got {value}.")
-    return jnp.asarray(x, dtype)
-
-
-def _check_tolerances(rtol, atol, t_max, energy_tol, dtype):
-    rtol = _check_scalar(rtol, "rtol", dtype)
-    atol = _check_scalar(atol, "atol", dtype)
-    eps = float(jnp.finfo(dtype).eps)
-    if is_concrete(rtol) and float(rtol) < eps:
-        warnings.warn(
-            f"rtol={float(rtol):g} is below the machine epsilon of "
-            f"{jnp.dtype(dtype).name} ({eps:.2g}): the periods cannot reach it. Enable "
-            "float64 (JAX's x64 mode, set by the caller) or loosen rtol.",
-            stacklevel=3,
-        )
-    t_max = _check_scalar(t_max, "t_max", dtype, optional=True)
-    energy_tol = _check_scalar(energy_tol, "energy_tol", dtype, optional=True)
-    return rtol, atol, t_max, energy_tol
-
-
-def _check_L(L, dtype):
-    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
-    z = jnp.zeros((1,), dtype)
-    _check_lagrangian(L, z, z, jnp.zeros((), dtype))
+def _check_options(L, dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method):
+    """The checks `period` and `sweep_periods` share, run once per call."""
+    check_one_dof(L, dtype)
+    check_instance(
+        solver,
+        "solver",
+        dfx.AbstractAdaptiveSolver,
+        "an adaptive diffrax solver (the turning point is found with adaptive steps), "
+        "e.g. diffrax.Dopri8()",
+    )
+    rtol, atol = tolerances(rtol, atol, dtype, stacklevel=3)
+    t_max = positive_scalar(t_max, "t_max", dtype, optional=True)
+    energy_tol = positive_scalar(energy_tol, "energy_tol", dtype, optional=True)
+    max_steps = positive_int(max_steps, "max_steps")
+    return (
+        rtol,
+        atol,
+        t_max,
+        energy_tol,
+        max_steps,
+        check_choice(method, "method", _METHODS),
+    )
 
 
 # ---------------------------------------------------------------------------- period
@@ -511,12 +403,8 @@ def period(
     q0 = q0.reshape(())
     if throw:
         check_finite(q0, "q0")
-    dtype = q0.dtype
-    _check_L(L, dtype)
-    _check_solver(solver)
-    max_steps = _check_positive_int(max_steps, "max_steps")
-    rtol, atol, t_max, energy_tol = _check_tolerances(
-        rtol, atol, t_max, energy_tol, dtype
+    rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
+        L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
     out = _lane(
         L,
@@ -527,7 +415,7 @@ def period(
         energy_tol,
         solver=solver,
         max_steps=max_steps,
-        method=_check_method(method),
+        method=method,
     )
     if throw:
         if is_concrete(out.status):
@@ -543,13 +431,8 @@ def period(
                     f"lagrax.period failed for q0={float(q0)!r}: status {code} "
                     f"({STATUS_CODES[code]}): {status_message(code)}."
                 )
-        else:
-            out = eqx.error_if(
-                out,
-                out.status != SUCCESS,
-                "lagrax.period failed: use sweep_periods (or throw=False) to see the "
-                "status of each amplitude.",
-            )
+        else:  # the status's own message, under jit too
+            out = status_result(out.status).error_if(out, out.status != SUCCESS)
     return out.period
 
 
@@ -596,42 +479,33 @@ class SweepResult(eqx.Module):
         return [status_message(c) for c in np.asarray(self.status)]
 
 
-@functools.lru_cache(maxsize=64)
-def _chunk_solver(L, solver, max_steps, method, has_t_max, has_etol, devices):
-    """The compiled chunk function for one static configuration (cached, so changing
-    amplitudes or tolerances never recompiles)."""
+@eqx.filter_jit
+def _chunk(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method, devices):
+    """One chunk of lanes, compiled once per static configuration: `L`, `solver` and
+    the Python values are static, the arrays traced (a `None` `t_max` or
+    `energy_tol` is static too), so changing amplitudes or tolerances never
+    recompiles."""
+    lane = functools.partial(
+        _lane, L, solver=solver, max_steps=max_steps, method=method
+    )
 
     def lanes(q0, rtol, atol, t_max, energy_tol):
-        lane = functools.partial(
-            _lane,
-            L,
-            solver=solver,
-            max_steps=max_steps,
-            method=method,
-        )
         out = jax.vmap(lane, in_axes=(0, None, None, None, None))(
-            q0, rtol, atol, t_max if has_t_max else None, energy_tol
+            q0, rtol, atol, t_max, energy_tol
         )
         # Every solve is its own batched loop: it runs max-over-lanes steps for all.
         executed = jnp.sum(jnp.max(out.steps, axis=0)) * q0.shape[0]
         return out.period, out.status, jnp.sum(out.steps, axis=1), executed[None]
 
-    if not has_etol:
-        inner = lanes
-        lanes = lambda q0, rtol, atol, t_max, energy_tol: inner(
-            q0, rtol, atol, t_max, None
+    if len(devices) > 1:
+        lanes = jax.shard_map(
+            lanes,
+            mesh=Mesh(np.array(devices), ("lanes",)),
+            in_specs=(P("lanes"), P(), P(), P(), P()),
+            out_specs=(P("lanes"), P("lanes"), P("lanes"), P("lanes")),
+            check_vma=False,
         )
-    if len(devices) == 1:
-        return jax.jit(lanes)
-    mesh = Mesh(np.array(devices), ("lanes",))
-    sharded = jax.shard_map(
-        lanes,
-        mesh=mesh,
-        in_specs=(P("lanes"), P(), P(), P(), P()),
-        out_specs=(P("lanes"), P("lanes"), P("lanes"), P("lanes")),
-        check_vma=False,
-    )
-    return jax.jit(sharded)
+    return lanes(q0, rtol, atol, t_max, energy_tol)
 
 
 def sweep_periods(
@@ -699,47 +573,25 @@ def sweep_periods(
             "`q0` must be a non-empty 1-D array of release points (one per amplitude); "
             f"got shape {q0.shape}."
         )
-    dtype = q0.dtype
-    _check_L(L, dtype)
-    _check_solver(solver)
-    max_steps = _check_positive_int(max_steps, "max_steps")
-    chunk_size = _check_positive_int(chunk_size, "chunk_size")
-    rtol, atol, t_max, energy_tol = _check_tolerances(
-        rtol, atol, t_max, energy_tol, dtype
+    rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
+        L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    if devices is None:
-        devices = jax.devices()
-    if isinstance(devices, jax.Device | str) or not hasattr(devices, "__iter__"):
-        raise TypeError(
-            f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
-        )
-    devices = tuple(devices)
-    if len(devices) == 0 or not all(isinstance(d, jax.Device) for d in devices):
-        raise TypeError(
-            f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
-        )
+    chunk_size = positive_int(chunk_size, "chunk_size")
+    devices = check_devices(jax.devices() if devices is None else devices)
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
-    run = _chunk_solver(
-        L,
-        solver,
-        max_steps,
-        _check_method(method),
-        t_max is not None,
-        energy_tol is not None,
-        devices,
+    run = functools.partial(
+        _chunk, L, solver=solver, max_steps=max_steps, method=method, devices=devices
     )
     n = q0.shape[0]
     width = chunk_size * len(devices)
     n_chunks = -(-n // width)
     order = jnp.argsort(q0, stable=True) if sort else jnp.arange(n)
     padded = jnp.concatenate([q0[order], jnp.full(n_chunks * width - n, q0[order][-1])])
-    t_max_arg = jnp.zeros((), dtype) if t_max is None else t_max
-    etol_arg = jnp.zeros((), dtype) if energy_tol is None else energy_tol
     outs = []
     for k in range(n_chunks):
         chunk = padded[k * width : (k + 1) * width]
-        outs.append(run(chunk, rtol, atol, t_max_arg, etol_arg))
+        outs.append(run(chunk, rtol, atol, t_max, energy_tol))
         if progress is not None:
             jax.block_until_ready(outs[-1])
             progress(min((k + 1) * width, n), n)

@@ -5,18 +5,12 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
+from ._checks import call_user, check_callable, describe
 from ._custom_types import Coordinates, Lagrangian, RealScalarLike
-from ._misc import check_callable, describe
 
 
 def _check_phi(phi, u, t):
-    try:
-        out = jax.eval_shape(phi, u, t)
-    except TypeError as e:
-        raise TypeError(
-            "`phi` must be a function phi(u, t) -> q taking the new coordinates u "
-            f"(shape {u.shape}) and the time t; calling it failed with: {e}"
-        ) from e
+    out = call_user(phi, "phi", "phi(u, t) -> q of the new coordinates u", u, t)
     shape = getattr(out, "shape", None)
     dtype = getattr(out, "dtype", None)
     if shape is None or dtype is None or not jnp.issubdtype(dtype, jnp.floating):

@@ -13,7 +13,7 @@ drifting at $E\times B/|B|^2$.
 
 import jax.numpy as jnp
 
-from .._misc import describe
+from .._checks import describe
 
 
 def _check_field(x, name):

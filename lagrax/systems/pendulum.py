@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._misc import as_real_array, is_concrete
+from .._checks import as_real_array, is_concrete
 
 
 def lagrangian(*, m=1.0, r=1.0, g=1.0):

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import jax.numpy as jnp
 
-from .._misc import check_callable
+from .._checks import check_callable
 
 
 def lagrangian(potential: Callable, *, m=1.0):
