@@ -67,6 +67,29 @@ def as_real_array(x, name: str):
     return jnp.asarray(x)
 
 
+def as_real_promoting_ints(x, name: str):
+    """`as_real_array`, with Python ints and integer arrays promoted to the default
+    float (harmless for a length or an angle in whole radians, unlike coordinates,
+    which carry tangents). Strings, complex, bool: rejected."""
+    if not isinstance(x, str | bytes | bool) and x is not None:
+        try:
+            dtype = jnp.result_type(x)
+        except TypeError:
+            dtype = None
+        if dtype is not None and jnp.issubdtype(dtype, jnp.integer):
+            x = jnp.asarray(x, dtype=jnp.result_type(float))
+    return as_real_array(x, name)
+
+
+def positive_array(x, name: str):
+    """A real float array (ints promoted), positive wherever its values are known."""
+    x = as_real_promoting_ints(x, name)
+    # numpy, not jnp: inside a jit trace a jnp op on a concrete array is a tracer.
+    if is_concrete(x) and not np.all(np.asarray(x) > 0):
+        raise ValueError(f"`{name}` must be positive; got {np.asarray(x)!r}.")
+    return x
+
+
 def as_state(q, qdot, qname: str = "q", qdotname: str = "qdot"):
     """Checks and converts a state `(q, qdot)`: 1-D, same length, real float."""
     q = as_real_array(q, qname)
