@@ -67,10 +67,10 @@ class QuadratureResult(eqx.Module):
     r"""What `lagrax.quadrature_period` returns.
 
     - `periods`: the periods $T$, shaped like `q0`; NaN where `status != 0`.
-    - `status`: int codes shaped like `q0`, those of `lagrax.RESULTS` (shared with
-        `sweep_periods`): 0 success, 1 released at an equilibrium, 3 singular mass,
-        4 turning point not found, 8 too close to an unstable equilibrium to resolve,
-        9 `L` not natural, 10 escapes (no turning point), 11 non-finite. See
+    - `status`: int codes shaped like `q0`, the int view of `lagrax.RESULTS`
+        (shared with `sweep_periods`; `lagrax.STATUS_CODES`): `success`,
+        `not_oscillating` (at an equilibrium), `escapes`, `unresolved`,
+        `singular_mass`, `root_find_failed`, `not_natural`, `nonfinite_period`. See
         `messages()` and `lagrax.status_message`.
     - `turning_points`: the far turning point $q_1$ reached from `q0` (NaN on failure).
     - `errors`: an estimate of the relative error of each period from rounding: the
@@ -79,7 +79,7 @@ class QuadratureResult(eqx.Module):
         equilibrium (a hilltop), where the period depends on the log of the energy gap.
         Quadrature truncation is not included (it is below 1e-13 with the default
         nodes except near a hilltop). Points whose estimate exceeds `rtol` get
-        status 8 (`unresolved`).
+        status `unresolved`.
     """
 
     periods: Float[Array, "..."]
@@ -387,11 +387,11 @@ def quadrature_period(
     - `q0`: the release points, an array of any shape (each entry one release from
         rest); a scalar gives a scalar period.
     - `rtol`: the largest acceptable estimated relative error (`errors`); a release
-        point beyond it (too near a hilltop for this precision) gets status 8
-        (`unresolved`) and no number. An array: changing it does not recompile.
+        point beyond it (too near a hilltop for this precision) gets status
+        `unresolved` and no number. An array: changing it does not recompile.
     - `nodes`: Gauss–Legendre nodes of the outer rule (even; static). 128 reaches
         ~1e-13 for the pendulum up to ~1e-2 from the top; releases nearer an unstable
-        equilibrium need more (or get status 8, `unresolved`).
+        equilibrium need more (or get status `unresolved`).
     - `inner_nodes`: nodes of the inner rule that averages $V'$ (static).
     - `throw`: raise if any release point fails. With `throw=False` failures are in
         `status` and their periods are NaN.
@@ -403,8 +403,8 @@ def quadrature_period(
     Releases that do not oscillate are reported as such, never as a number: at an
     equilibrium (the pendulum at the bottom, or at $\pi$ to within the rounding of
     $q_0$), with no turning point ahead, or too near a hilltop for the turning point to
-    be resolved (status 8). (Beyond the top, e.g. the pendulum released at rest at
-    $\pi + 0.1$, the motion is a swing about $2\pi$, and that period is returned.)
+    be resolved (status `unresolved`). (Beyond the top, e.g. the pendulum released at
+    rest at $\pi + 0.1$, the motion is a swing about $2\pi$, and that period is returned.)
 
     **Raises:**
 

@@ -136,11 +136,8 @@ def status_message(code) -> str:
     r"""The meaning of a status code of `period`, `sweep_periods` or
     `quadrature_period`, as one line of text.
 
-    The codes are the int view of `lagrax.RESULTS`, listed in `lagrax.STATUS_CODES`
-    (0 `success`, 1 `not_oscillating`, 2 `max_steps`, 3 `singular_mass`, 4
-    `root_find_failed`, 5 `energy_drift`, 6 `solver_failed`, 7 `nonfinite_input`, 8
-    `unresolved`, 9 `not_natural`, 10 `escapes`, 11 `nonfinite_period`, 12
-    `tolerance_not_met`, 13 `coordinate_singularity`).
+    The codes are the int view of `lagrax.RESULTS` (the table is in the docstring of
+    `lagrax.RESULTS`'s module and in `lagrax.STATUS_CODES`).
 
     **Arguments:** `code`: an int (or integer scalar array).
 

@@ -70,7 +70,7 @@ def reparametrize(
 
     **Example:**
 
-    The seed's cycloid, with the cusp at $\theta = 0$, in $u = \cos(\theta/2)$:
+    Huygens' cycloid, with the cusp at $\theta = 0$, in $u = \cos(\theta/2)$:
 
     ```python
     L_theta = lagrax.systems.cycloid.lagrangian(R=1.0, g=9.81)
@@ -79,7 +79,6 @@ def reparametrize(
     # |u| < 1; at the cusps |u| = 1 arccos itself is singular, so there use the
     # closed form.
     lagrax.accelerations(L_u, jnp.array([0.5]), jnp.array([0.0]))  # -(g/4R) * 0.5
-    ```
     ```
     """
     check_callable(L, "L", "a function L(q, qdot, t) -> scalar")

@@ -16,7 +16,7 @@ def _acc(L, q, qdot, t=0.0, force=None):
 
 
 @pytest.mark.parametrize("m,r,g", [(1.0, 1.0, 1.0), (2.5, 0.3, 9.81), (0.1, 7.0, 1.6)])
-def test_pendulum_matches_seed(key, m, r, g):
+def test_pendulum_matches_hand_derivation(key, m, r, g):
     L = pendulum.lagrangian(m=m, r=r, g=g)
     q, qdot = random_states(key, 1, 50, scale=2.0)
     got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(q, qdot)
@@ -25,8 +25,8 @@ def test_pendulum_matches_seed(key, m, r, g):
 
 
 @pytest.mark.parametrize("m,R,g", [(1.0, 1.0, 1.0), (3.0, 0.5, 9.81)])
-def test_cycloid_matches_seed(key, m, R, g):
-    # The seed's final form, 2Rθ̈ sin(θ/2) + Rθ̇² cos(θ/2) − g cos(θ/2) = 0, off the cusp.
+def test_cycloid_matches_hand_derivation(key, m, R, g):
+    # Huygens' cycloid in θ: 2Rθ̈ sin(θ/2) + Rθ̇² cos(θ/2) − g cos(θ/2) = 0, off the cusp.
     L = cycloid.lagrangian(m=m, R=R, g=g)
     kq, kv = jax.random.split(key)
     theta = jax.random.uniform(kq, (50, 1), minval=0.05, maxval=2 * jnp.pi - 0.05)

@@ -57,8 +57,8 @@ def test_energy_conserved_double_pendulum_like_coupled_system():
     assert np.max(np.abs(h - h[0])) < 1e-8
 
 
-def test_seed_cycloid_reduction_along_trajectory():
-    # u = cos(θ/2) obeys ü = −(g/4R) u: the seed's change of variable, checked on a
+def test_cycloid_reduction_along_trajectory():
+    # u = cos(θ/2) obeys ü = −(g/4R) u: the classical change of variable, checked on a
     # trajectory computed in θ (which stays away from the cusp for θ0 = 1.0).
     R, g = 0.6, 9.81
     L = cycloid.lagrangian(R=R, g=g)

@@ -34,7 +34,7 @@ def test_cycloid_theta_form_reparametrized_equals_u_form(key):
         np.testing.assert_allclose(
             uddot, lagrax.accelerations(L_ref, u, udot), rtol=1e-11, atol=1e-14
         )
-        # Mapped through phi, they are the theta form's accelerations (the seed's
+        # Mapped through phi, they are the theta form's accelerations (Huygens'
         # hand-derived equation) wherever theta is off the cusp.
         t = jnp.zeros(())
         theta = phi_cycloid(u, t)
