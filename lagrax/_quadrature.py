@@ -404,7 +404,8 @@ def quadrature_period(
     equilibrium (the pendulum at the bottom, or at $\pi$ to within the rounding of
     $q_0$), with no turning point ahead, or too near a hilltop for the turning point to
     be resolved (status `unresolved`). (Beyond the top, e.g. the pendulum released at
-    rest at $\pi + 0.1$, the motion is a swing about $2\pi$, and that period is returned.)
+    rest at $\pi + 0.1$, the motion is a swing about $2\pi$, and that period is
+    returned.)
 
     **Raises:**
 
