@@ -6,12 +6,18 @@ values only when they are concrete (an eager call), so that user errors surface 
 point calls them once, before any work: the hot path is never checked.
 """
 
+import contextlib
+import linecache
 import math
+import os
 import warnings
+import weakref
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax._src import checkify as checkify_internals  # the per-primitive check rules
+from jax.experimental import checkify
 
 
 def is_concrete(*xs) -> bool:
@@ -211,9 +217,10 @@ def check_devices(devices) -> tuple:
 
 
 def call_user(f, name, signature, *args):
-    """`jax.eval_shape(f, *args)`, with a user error in `f` re-raised naming `f`."""
+    """`jax.eval_shape(f, *args)`, with a user error in `f` re-raised naming `f`, and
+    an out-of-range index in `f` reported (`check_indices`)."""
     try:
-        return jax.eval_shape(f, *args)
+        out = jax.eval_shape(f, *args)
     except (TypeError, ValueError) as e:
         if str(e).startswith("`"):  # already a lagrax message naming its argument
             raise
@@ -232,6 +239,117 @@ def call_user(f, name, signature, *args):
             f"`{name}` must be a JAX-traceable function {signature}; calling it "
             f"with arguments {shapes} failed: {why}: {str(e).splitlines()[0]}"
         ) from e
+    check_indices(f, name, signature.split(" ->")[0], *args)
+    return out
+
+
+# Functions already probed by `check_indices`, with the shapes and dtypes they were
+# probed at: an eager loop over `accelerations` probes its `L` once.
+_PROBED = weakref.WeakKeyDictionary()
+_LAGRAX = os.path.dirname(os.path.abspath(__file__))
+
+
+def _where(error) -> str:
+    """` at file:line (`source`)`: the innermost frame of a checkify `error` outside
+    JAX and lagrax's private modules (the user's indexing), or `""`."""
+    for frame in getattr(error.traceback_info, "frames", ()):
+        path = os.path.abspath(frame.file_name)
+        if (
+            "site-packages" in path
+            or f"{os.sep}jax{os.sep}" in path
+            or os.path.dirname(path) == _LAGRAX
+        ):
+            continue
+        line = linecache.getline(path, frame.line_num).strip()
+        source = f" (`{line}`)" if line else ""
+        return f" at {os.path.basename(path)}:{frame.line_num}{source}"
+    return ""
+
+
+@contextlib.contextmanager
+def _explicit_gather_modes_unchecked():
+    """checkify flags every gather whose index is out of range, whatever its mode; a
+    gather with an explicit `mode="clip"` or `mode="fill"` (`jnp.take(..., mode=...)`,
+    `x.at[i].get(mode=...)`) asks for that behaviour, so it is exempt while `f` is
+    traced here. Plain indexing (`q[i]`, `q[idx]`) gathers with `PROMISE_IN_BOUNDS`
+    or slices dynamically, and stays checked. The rule is restored on exit."""
+    rules = checkify_internals.error_checks
+    checked = rules[jax.lax.gather_p]
+
+    def rule(error, enabled_errors, operand, start_indices, **params):
+        if params["mode"] in (
+            jax.lax.GatherScatterMode.CLIP,
+            jax.lax.GatherScatterMode.FILL_OR_DROP,
+        ):
+            return error, jax.lax.gather_p.bind(operand, start_indices, **params)
+        return checked(error, enabled_errors, operand, start_indices, **params)
+
+    rules[jax.lax.gather_p] = rule
+    try:
+        yield
+    finally:
+        rules[jax.lax.gather_p] = checked
+
+
+def _concrete(x):
+    """`x` if concrete, else zeros of its shape and dtype (a value to probe with)."""
+    return x if is_concrete(x) else np.zeros(jnp.shape(x), jnp.result_type(x))
+
+
+def check_indices(f, name: str, signature: str, *args):
+    """Raises if `f(*args)` indexes an array out of range.
+
+    JAX clamps an out-of-range index silently (`q[1]` of a shape-`(1,)` `q` reads
+    `q[0]`), so a Lagrangian written for more coordinates than it is given would
+    return wrong numbers without an error. `f` is traced once under
+    `checkify.index_checks` and the jaxpr evaluated outside any enclosing `jit`/`vmap`
+    trace, at the arguments where they are concrete and at zeros of their shape where
+    they are traced (and likewise for traced values `f` closes over). Validation only:
+    nothing of this is staged into the computation. Other failures of `f` are left to
+    the other checks.
+    """
+    key = tuple((jnp.shape(a), jnp.result_type(a)) for a in args)
+    try:
+        if key in _PROBED.get(f, ()):
+            return
+    except TypeError:  # not weakly referenceable: probe every time
+        pass
+    try:
+        checked = checkify.checkify(f, errors=checkify.index_checks)
+        with _explicit_gather_modes_unchecked():
+            jaxpr, shapes = jax.make_jaxpr(checked, return_shape=True)(*args)
+        with jax.core.eval_context():
+            flat = jax.core.eval_jaxpr(
+                jaxpr.jaxpr,
+                [_concrete(c) for c in jaxpr.consts],
+                *[_concrete(a) for a in jax.tree_util.tree_leaves(args)],
+            )
+            error, _ = jax.tree_util.tree_unflatten(
+                jax.tree_util.tree_structure(shapes), flat
+            )
+            error = error.get_exception()
+    except (TypeError, ValueError) as e:
+        if str(e).startswith("`"):  # a lagrax message from a nested check
+            raise
+        return  # a broken `f` is reported by the other checks
+    except Exception:
+        return
+    if error is not None:
+        shapes = ", ".join(f"{jnp.dtype(d).name}{list(s)}" for s, d in key)
+        message = str(error).strip().rstrip(".")
+        if "Tracer" in message:  # the index itself is not known here, its place is
+            shape = tuple(getattr(error, "operand_shape", ()))
+            message = f"an out-of-bounds index into an array of shape {shape}"
+        raise ValueError(
+            f"`{name}` must index its arguments within their shapes; {signature} "
+            f"with arguments {shapes} got {message}{_where(error)}. JAX would clamp "
+            "the index silently (q[1] of a q of shape (1,) reads q[0]) and give "
+            "wrong numbers: index only the coordinates the function is given."
+        )
+    try:
+        _PROBED.setdefault(f, set()).add(key)
+    except TypeError:
+        pass
 
 
 def check_lagrangian(L, q, qdot, t, *, what: str = ""):

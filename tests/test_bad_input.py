@@ -1229,3 +1229,166 @@ def test_simulate_warns_on_rtol_below_epsilon():
     with pytest.warns(UserWarning, match="machine epsilon") as record:
         _run(rtol=1e-17)
     assert record[0].filename == __file__  # points at the caller
+
+
+# ------------------------------------------- out-of-range indexing in user functions
+
+
+def _two_dof(q, qdot, t):  # written for two coordinates
+    return 0.5 * (qdot[0] ** 2 + qdot[1] ** 2) - 0.5 * (q[0] ** 2 + 2 * q[1] ** 2)
+
+
+def _pos_two(q, t):
+    return jnp.stack([jnp.sin(q[1]), -jnp.cos(q[0])])[None]
+
+
+INDEXING = [
+    case("accelerations", lambda: lagrax.accelerations(_two_dof, Q1, V1), "L"),
+    case("mass_matrix", lambda: lagrax.mass_matrix(_two_dof, Q1, V1), "L"),
+    case("momenta", lambda: lagrax.momenta(_two_dof, Q1, V1), "L"),
+    case("energy", lambda: lagrax.energy(_two_dof, Q1, V1), "L"),
+    case(
+        "accelerations-jit",
+        lambda: jax.jit(lambda q: lagrax.accelerations(_two_dof, q, V1))(Q1),
+        "L",
+    ),
+    case(
+        "accelerations-vmap",
+        lambda: jax.vmap(lambda q: lagrax.accelerations(_two_dof, q, q))(
+            jnp.ones((3, 1))
+        ),
+        "L",
+    ),
+    case(
+        "accelerations-force",
+        lambda: lagrax.accelerations(PENDULUM, Q1, V1, force=lambda q, v, t: -v * v[1]),
+        "force",
+    ),
+    case("simulate", lambda: lagrax.simulate(_two_dof, Q1, V1, 0.0, 1.0), "L"),
+    case(
+        "simulate-force",
+        lambda: lagrax.simulate(
+            PENDULUM, Q1, V1, 0.0, 1.0, force=lambda q, v, t: -q[1] * v
+        ),
+        "force",
+    ),
+    case("period", lambda: lagrax.period(_two_dof, 0.5), "L"),
+    case("period-jit", lambda: jax.jit(lambda a: lagrax.period(_two_dof, a))(0.5), "L"),
+    case("sweep_periods", lambda: lagrax.sweep_periods(_two_dof, jnp.ones(3)), "L"),
+    case("quadrature_period", lambda: lagrax.quadrature_period(_two_dof, 0.5), "L"),
+    case(
+        "quadrature_period-vmap-closure",
+        lambda: jax.vmap(
+            lambda k: (
+                lagrax.quadrature_period(
+                    lambda q, v, t: _two_dof(q, v, t) * k, 0.5, throw=False
+                ).periods
+            )
+        )(jnp.array([1.0, 2.0])),
+        "<lambda>",
+    ),
+    case(
+        "particle_lagrangian-positions",
+        lambda: lagrax.accelerations(
+            lagrax.particle_lagrangian(jnp.ones(1), _pos_two), Q1, V1
+        ),
+        "positions",
+    ),
+    case(
+        "particle_lagrangian-potential",
+        lambda: lagrax.accelerations(
+            lagrax.particle_lagrangian(jnp.ones(1), _positions, lambda r, t: r[1, 1]),
+            Q1,
+            V1,
+        ),
+        "potential",
+    ),
+    case(
+        "generalized_force-cartesian_force",
+        lambda: lagrax.accelerations(
+            PENDULUM,
+            Q1,
+            V1,
+            force=lagrax.generalized_force(_positions, lambda r, v, t: -v * r[0, 2]),
+        ),
+        "cartesian_force",
+    ),
+    case(
+        "dissipation_force-R",
+        lambda: lagrax.simulate(
+            PENDULUM,
+            Q1,
+            V1,
+            0.0,
+            1.0,
+            force=lagrax.dissipation_force(lambda q, v, t: v[1] ** 2),
+        ),
+        "R",
+    ),
+    case(
+        "degrees_of_freedom-constraints",
+        lambda: lagrax.degrees_of_freedom(lambda r, t: r[1, :1], R_NORTH),
+        "constraints",
+    ),
+    case(
+        "check_embedding-positions",
+        lambda: lagrax.check_embedding(
+            lambda q, t: sphere.positions()(jnp.stack([q[0], q[2]]), t),
+            SPHERE,
+            jnp.array([0.3, 0.2]),
+        ),
+        "positions",
+    ),
+    case(
+        "reparametrize-phi",
+        lambda: lagrax.accelerations(
+            lagrax.reparametrize(PENDULUM, lambda u, t: u * u[1]), Q1, V1
+        ),
+        "phi",
+    ),
+]
+
+
+@pytest.mark.parametrize("thunk,name", INDEXING)
+def test_out_of_range_index_is_an_error(thunk, name):
+    with pytest.raises(ValueError) as info:
+        jax.block_until_ready(thunk())
+    if name != "<lambda>":
+        assert_clear(info.value, name)
+    message = str(info.value)
+    assert "must index its arguments within their shapes" in message
+    assert "out-of-bounds" in message
+    # Where: this file, the line that indexes.
+    assert "test_bad_input.py:" in message
+
+
+def test_sweep_of_a_two_coordinate_lagrangian_is_not_a_number():
+    # Before the check: periods 5.99... with status success (q[1] read q[0]).
+    with pytest.raises(ValueError, match=r"index 1 is out of bounds.*`L2 = "):
+        L2 = lambda q, qdot, t: 0.5 * qdot[0] ** 2 + 0.5 * qdot[1] ** 2 - q[1] ** 2
+        lagrax.sweep_periods(L2, jnp.array([0.5, 1.0]))
+
+
+def test_indexing_within_range_is_fine():
+    # Negative indices, slices, explicit clipping and the right number of coordinates.
+    L = lambda q, qdot, t: (
+        0.5 * qdot[-1] ** 2
+        - 0.5 * jnp.sum(q[:5] ** 2)
+        + 0 * jnp.take(q, 3, mode="clip")
+    )
+    np.testing.assert_allclose(lagrax.accelerations(L, Q1, V1), -Q1)
+    two = jnp.array([0.5, 0.2])
+    np.testing.assert_allclose(
+        lagrax.accelerations(_two_dof, two, two), jnp.array([-0.5, -0.4])
+    )
+    assert np.isfinite(lagrax.period(lambda q, v, t: L(q, v, t) - q[0] ** 4, 0.5))
+
+
+def test_index_check_adds_nothing_to_the_computation():
+    checked = jax.make_jaxpr(lambda q, v: lagrax.accelerations(PENDULUM, q, v))(Q1, V1)
+    core = jax.make_jaxpr(
+        lambda q, v: lagrax._mechanics._accelerations_jit(
+            PENDULUM, q, v, jnp.zeros(()), None
+        )[0]
+    )(Q1, V1)
+    assert str(checked) == str(core)
