@@ -309,11 +309,8 @@ def check_indices(f, name: str, signature: str, *args):
     the other checks.
     """
     key = tuple((jnp.shape(a), jnp.result_type(a)) for a in args)
-    try:
-        if key in _PROBED.get(f, ()):
-            return
-    except TypeError:  # not weakly referenceable: probe every time
-        pass
+    if key in _PROBED.get(f, ()):  # (jax.eval_shape, before, needs weakrefs too)
+        return
     try:
         checked = checkify.checkify(f, errors=checkify.index_checks)
         with _explicit_gather_modes_unchecked():
@@ -346,10 +343,7 @@ def check_indices(f, name: str, signature: str, *args):
             "the index silently (q[1] of a q of shape (1,) reads q[0]) and give "
             "wrong numbers: index only the coordinates the function is given."
         )
-    try:
-        _PROBED.setdefault(f, set()).add(key)
-    except TypeError:
-        pass
+    _PROBED.setdefault(f, set()).add(key)
 
 
 def check_lagrangian(L, q, qdot, t, *, what: str = ""):

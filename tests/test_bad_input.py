@@ -1392,3 +1392,18 @@ def test_index_check_adds_nothing_to_the_computation():
         )[0]
     )(Q1, V1)
     assert str(checked) == str(core)
+
+
+def _fancy(q, qdot, t):
+    return 0.5 * jnp.sum(qdot[jnp.array([0, 1])] ** 2) - 0.5 * q[0] ** 2
+
+
+def test_fancy_index_out_of_range():
+    # A gather (not a slice): reported too, naming `L`, at every call.
+    for _ in range(2):
+        with pytest.raises(ValueError, match="`L` must index its arguments") as info:
+            lagrax.accelerations(_fancy, Q1, V1)
+        assert_clear(info.value, "L")
+    np.testing.assert_allclose(
+        lagrax.accelerations(_fancy, jnp.array([0.5, 0.0]), jnp.zeros(2)), [-0.5, 0.0]
+    )
