@@ -126,9 +126,7 @@ def work_heyoka(args):
         ta = scalar_integrator()
         scalar_loop(ta, a[:64])
         T, sec = _best(lambda: scalar_loop(ta, a), args.repeats)
-        rows.append(
-            _row(f"heyoka.py {hy.__version__} scalar, 1 core", T, exact, sec)
-        )
+        rows.append(_row(f"heyoka.py {hy.__version__} scalar, 1 core", T, exact, sec))
         B = hy.recommended_simd_size()
         first = np.full(B, np.nan)
 
@@ -157,9 +155,7 @@ def work_heyoka(args):
             return T
 
         T, sec = _best(batch, args.repeats)
-        rows.append(
-            _row(f"heyoka.py batch (SIMD {B}), 1 core", T, exact, sec)
-        )
+        rows.append(_row(f"heyoka.py batch (SIMD {B}), 1 core", T, exact, sec))
     else:
         integrators = [scalar_integrator(), scalar_integrator()]
         halves = np.array_split(a, 2)
@@ -334,7 +330,6 @@ def work_gpu(args):
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
-    import numpy as np
 
     import lagrax
     from lagrax.systems import pendulum
@@ -417,8 +412,10 @@ def main():
         (x["periods_per_s"] for x in rows if x["name"].startswith("heyoka")),
         default=None,
     )
-    print(f"{'':58s} {'periods/s':>10s} {'vs heyoka':>9s} {'max err':>8s} "
-          f"{'steps':>6s} {'useful':>6s} {'ns/ls':>6s} {'ceil':>5s} {'compile':>7s}")
+    print(
+        f"{'':58s} {'periods/s':>10s} {'vs heyoka':>9s} {'max err':>8s} "
+        f"{'steps':>6s} {'useful':>6s} {'ns/ls':>6s} {'ceil':>5s} {'compile':>7s}"
+    )
     for x in rows:
         ratio = x["periods_per_s"] / best_heyoka if best_heyoka else float("nan")
         f = lambda k, fmt: (fmt % x[k]) if x.get(k) is not None else "-"
@@ -450,22 +447,34 @@ def main():
     fig, ax = plt.subplots(figsize=(8, 0.32 * len(rows) + 1.2))
     names = [x["name"] for x in rows]
     speed = [x["periods_per_s"] for x in rows]
-    colors = ["C1" if n.startswith("heyoka") else "C0" if "lagrax" in n else "C7"
-              for n in names]
+    colors = [
+        "C1" if n.startswith("heyoka") else "C0" if "lagrax" in n else "C7"
+        for n in names
+    ]
     ax.barh(names, speed, color=colors)
     ax.invert_yaxis()
     ax.set_xscale("log")
     ax.set_xlabel("periods per second (higher is better)")
     for i, x in enumerate(rows):
         if x.get("max_rel_error") is not None:
-            ax.text(x["periods_per_s"], i, f" {x['max_rel_error']:.0e}", va="center",
-                    fontsize=7)
-    ax.set_title(f"Pendulum sweep, {rows[0]['n'] if rows else 0} amplitudes "
-                 "0.01–3.1 rad (label: max relative error)", fontsize=9)
+            ax.text(
+                x["periods_per_s"],
+                i,
+                f" {x['max_rel_error']:.0e}",
+                va="center",
+                fontsize=7,
+            )
+    ax.set_title(
+        f"Pendulum sweep, {rows[0]['n'] if rows else 0} amplitudes "
+        "0.01–3.1 rad (label: max relative error)",
+        fontsize=9,
+    )
     ax.tick_params(axis="y", labelsize=7)
     fig.tight_layout()
-    fig.savefig(os.path.join(RESULTS, "sweep.png" if not args.quick else
-                             "sweep_quick.png"), dpi=120)
+    fig.savefig(
+        os.path.join(RESULTS, "sweep.png" if not args.quick else "sweep_quick.png"),
+        dpi=120,
+    )
     print("wrote", os.path.join(RESULTS, name))
 
 

@@ -14,19 +14,21 @@ from ._particles import (
     generalized_force as generalized_force,
     particle_lagrangian as particle_lagrangian,
 )
-from ._period import (
-    period as period,
-    STATUS_CODES as STATUS_CODES,
-    status_message as status_message,
-    SweepResult as SweepResult,
-)
+from ._period import period as period
 from ._quadrature import (
     quadrature_period as quadrature_period,
     quadrature_status_message as quadrature_status_message,
     QuadratureResult as QuadratureResult,
 )
-from ._sweep import sweep_periods as sweep_periods
+from ._results import (
+    RESULTS as RESULTS,
+    status_code as status_code,
+    STATUS_CODES as STATUS_CODES,
+    status_message as status_message,
+    status_result as status_result,
+)
 from ._simulate import simulate as simulate, vector_field as vector_field
+from ._sweep import sweep_periods as sweep_periods, SweepResult as SweepResult
 from ._term import LagrangianTerm as LagrangianTerm
 from ._transform import reparametrize as reparametrize
 from ._variational import VariationalMidpoint as VariationalMidpoint

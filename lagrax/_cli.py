@@ -864,7 +864,6 @@ class _Blocks:
 
 def _sweep(target, args, devices, blocks, targets, bar):
     import diffrax as dfx
-    import jax
     import jax.numpy as jnp
     import numpy as np
 

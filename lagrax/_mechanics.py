@@ -16,82 +16,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
-import numpy as np
 
+from ._checks import check_solvable, prepare as _prepare
 from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
-from ._misc import (
-    as_state,
-    as_time,
-    check_callable,
-    check_finite,
-    describe,
-    is_concrete,
-)
-
-
-def _call_user(f, name, signature, *args):
-    """`jax.eval_shape(f, *args)`, with a user error in `f` re-raised naming `f`."""
-    try:
-        return jax.eval_shape(f, *args)
-    except (TypeError, ValueError) as e:
-        if str(e).startswith("`"):  # already a lagrax message naming its argument
-            raise
-        shapes = ", ".join(
-            f"{jnp.dtype(a.dtype).name}{list(a.shape)}" if hasattr(a, "shape") else "?"
-            for a in args
-        )
-        if isinstance(e, jax.errors.ConcretizationTypeError):
-            why = (
-                "Python control flow or float() on a value that depends on the "
-                "arguments (use jnp.where or jax.lax.cond)"
-            )
-        else:
-            why = type(e).__name__
-        raise (TypeError if isinstance(e, TypeError) else ValueError)(
-            f"`{name}` must be a JAX-traceable function {signature}; calling it "
-            f"with arguments {shapes} failed: {why}: {str(e).splitlines()[0]}"
-        ) from e
-
-
-def _check_lagrangian(L, q, qdot, t):
-    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
-    out = _call_user(L, "L", "L(q, qdot, t) -> scalar", q, qdot, t)
-    shape = getattr(out, "shape", None)
-    dtype = getattr(out, "dtype", None)
-    if shape != () or dtype is None or not jnp.issubdtype(dtype, jnp.floating):
-        got = (
-            f"shape {shape} and dtype {dtype}"
-            if shape is not None
-            else f"a {type(out).__name__}"
-        )
-        raise TypeError(
-            "`L` must return a real floating-point scalar (the Lagrangian); "
-            f"L(q, qdot, t) returned {got}. Sum or index the terms into a scalar."
-        )
-
-
-def _check_force(force, q, qdot, t):
-    check_callable(force, "force", "a function force(q, qdot, t) -> Q of shape (n,)")
-    out = _call_user(force, "force", "force(q, qdot, t) -> Q", q, qdot, t)
-    if getattr(out, "shape", None) != q.shape or not jnp.issubdtype(
-        out.dtype, jnp.floating
-    ):
-        raise TypeError(
-            f"`force` must return a generalized force Q of shape {q.shape} (one entry "
-            f"per coordinate) and real floating dtype; force(q, qdot, t) returned "
-            f"{describe(out)}."
-        )
-
-
-def _prepare(L, q, qdot, t, force=None, names=("q", "qdot", "t")):
-    q, qdot = as_state(q, qdot, names[0], names[1])
-    t = as_time(t, names[2], q.dtype)
-    for x, name in zip((q, qdot, t), names):
-        check_finite(x, name)  # eager only: a NaN state is a user error, not M's
-    _check_lagrangian(L, q, qdot, t)
-    if force is not None:
-        _check_force(force, q, qdot, t)
-    return q, qdot, t
 
 
 def _lagrange_terms(L, q, qdot, t):
@@ -231,20 +158,7 @@ def accelerations(
     """
     q, qdot, t = _prepare(L, q, qdot, t, force)
     qddot, (M, ok) = _accelerations_jit(L, q, qdot, t, force)
-    if is_concrete(q, qdot, t, qddot):
-        where = f"q={np.asarray(q)}, qdot={np.asarray(qdot)}, t={float(t)}"
-        if not bool(ok):
-            raise ValueError(
-                "The mass matrix M = ∂²L/∂qdot² is singular or indefinite at "
-                f"{where}: M = {np.asarray(M).tolist()}. Lagrange's equations cannot "
-                "be solved for the accelerations there; if this is a coordinate "
-                "singularity, change coordinates (see `lagrax.reparametrize`)."
-            )
-        if not bool(jnp.all(jnp.isfinite(qddot))):
-            raise ValueError(
-                f"The accelerations are not finite at {where}: "
-                f"qddot = {np.asarray(qddot)}. Check L (and force) there."
-            )
+    check_solvable(qddot, M, ok, q, qdot, t)
     return qddot
 
 
@@ -310,5 +224,11 @@ def energy(
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
     """
     q, qdot, t = _prepare(L, q, qdot, t)
+    return _jacobi(L, q, qdot, t)[0]
+
+
+def _jacobi(L, q, qdot, t):
+    r"""Unchecked `energy`, and $|\dot q\cdot p| + |L|$, the scale of its rounding."""
     value, p = jax.value_and_grad(L, argnums=1)(q, qdot, t)
-    return jnp.dot(qdot, p) - value
+    kinetic = jnp.dot(qdot, p)
+    return kinetic - value, jnp.abs(kinetic) + jnp.abs(value)

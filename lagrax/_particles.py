@@ -1,7 +1,7 @@
 r"""From particles, forces and constraints to Lagrangians and generalized forces.
 
-The seed's derivation, as an API. $N$ particles at $r_i(q, t)$ (shape `(N, d)`, $d = 2$
-or $3$) in $n$ generalized coordinates give
+Lagrange's derivation from d'Alembert's principle, as an API. $N$ particles at
+$r_i(q, t)$ (shape `(N, d)`, $d = 2$ or $3$) in $n$ generalized coordinates give
 
 $$T = \frac12\sum_i m_i|\dot r_i|^2,\qquad
 \dot r = \frac{\partial r}{\partial q}\dot q + \frac{\partial r}{\partial t},\qquad
@@ -21,9 +21,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._checks import (
+    as_real_array,
+    as_time,
+    call_user as _call_user,
+    check_callable,
+    describe,
+    is_concrete,
+    positive_scalar,
+)
 from ._custom_types import GeneralizedForce, Lagrangian
-from ._mechanics import _call_user
-from ._misc import as_real_array, check_callable, describe, is_concrete
 
 
 Positions = Callable[[jax.Array, jax.Array], jax.Array]
@@ -135,7 +142,7 @@ def particle_lagrangian(
     \dot r = \frac{\partial r}{\partial q}\dot q + \frac{\partial r}{\partial t},$$
 
     with $\dot r$ from one forward-mode JVP of `positions` along $(\dot q, 1)$ (no
-    Jacobian matrix). The constraints are built into `positions` (the seed's
+    Jacobian matrix). The constraints are built into `positions` (as in
     $r_i = r_i(q_1, \ldots, q_n, t)$): a moving support or a rotating frame is an
     explicit `t` in `positions`, and Lagrange's equations then carry the
     $\partial^2 L/\partial\dot q\,\partial t$ term.
@@ -352,22 +359,14 @@ def _violation(values, jac, r, rtol):
 
 
 def _time_and_rtol(t, rtol, dtype):
-    t = as_real_array(t, "t") if not isinstance(t, int | float) else jnp.asarray(t)
-    if jnp.ndim(t) != 0:
-        raise ValueError(f"`t` must be a scalar time; got shape {jnp.shape(t)}.")
-    rtol = as_real_array(rtol, "rtol") if not isinstance(rtol, int | float) else rtol
-    if jnp.ndim(rtol) != 0:
-        raise ValueError(f"`rtol` must be a scalar; got shape {jnp.shape(rtol)}.")
-    if is_concrete(rtol) and not float(rtol) > 0:
-        raise ValueError(f"`rtol` must be positive; got {float(rtol)}.")
-    return jnp.asarray(t, dtype), jnp.asarray(rtol, dtype)
+    return as_time(t, "t", dtype), positive_scalar(rtol, "rtol", dtype)
 
 
 def degrees_of_freedom(constraints: Callable, r, t=0.0, *, rtol=1e-8):
     r"""Degrees of freedom, $n = dN - \mathrm{rank}(\partial f/\partial r)$.
 
     For $N$ particles in $d$ dimensions under holonomic constraints $f(r, t) = 0$
-    ($k$ of them), the seed's $n = 3N - k$ when the constraints are independent; the
+    ($k$ of them), $n = 3N - k$ when the constraints are independent; the
     rank of the constraint Jacobian at the configuration $r$ counts the independent
     ones.
 

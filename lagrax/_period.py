@@ -11,7 +11,7 @@ $L = \frac12 m(q)\dot q^2 - V(q)$, symmetric potential or not) the return leg is
 time-reversed outgoing leg, so $T = 2\,t(q_0 \to q_1)$: half the work. Nothing here
 assumes a centre of oscillation; the turning points are found wherever they are.
 
-Numerical choices (each one a trap measured in DESIGN.md):
+Numerical choices (each one a measured trap):
 
 - Each lane is integrated in its own units, $x = q/|q_0|$ and $s = t/\tau$ with
   $\tau = \sqrt{|q_0| / |\ddot q(q_0)|}$, so that `rtol`/`atol` mean the same thing at
@@ -30,111 +30,40 @@ Numerical choices (each one a trap measured in DESIGN.md):
   solve through a coordinate singularity can "succeed" with a garbage trajectory.
 """
 
-import functools
-import math
-import warnings
-from collections.abc import Callable, Sequence
 
 import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
-from jax.sharding import Mesh, PartitionSpec as P
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array
 
+from ._checks import (
+    as_real_array,
+    check_choice,
+    check_finite,
+    check_instance,
+    check_one_dof,
+    is_concrete,
+    positive_int,
+    positive_scalar,
+    tolerances,
+)
 from ._custom_types import Lagrangian, RealScalarLike
-from ._mechanics import _accelerations, _check_lagrangian
-from ._misc import as_real_array, check_callable, check_finite, is_concrete
-
-
-# --------------------------------------------------------------------------- statuses
-
-SUCCESS = 0
-NOT_OSCILLATING = 1
-MAX_STEPS = 2
-SINGULAR_MASS = 3
-ROOT_FIND_FAILED = 4
-ENERGY_DRIFT = 5
-SOLVER_FAILED = 6
-NONFINITE_INPUT = 7
-
-_STATUS = {
-    SUCCESS: ("success", "success"),
-    NOT_OSCILLATING: (
-        "not_oscillating",
-        "does not oscillate: released at an equilibrium (zero acceleration), or the "
-        "coordinate ran away (|q - q0| > 1e6 max(|q0|, 1); also what a path through a "
-        "coordinate singularity looks like, e.g. the cycloid in θ released near its "
-        "cusp sails through the other cusp), or no turning point before t_max",
-    ),
-    MAX_STEPS: (
-        "max_steps",
-        "max_steps reached before the next turning point: raise max_steps or loosen "
-        "the tolerances; thousands of steps for one swing usually mean a coordinate "
-        "singularity on the path (e.g. the cycloid's cusp in θ; reparametrize)",
-    ),
-    SINGULAR_MASS: (
-        "singular_mass",
-        "singular or indefinite mass matrix ∂²L/∂q̇² (at the release point or where "
-        "the solve stopped): a coordinate singularity; change coordinates with "
-        "lagrax.reparametrize",
-    ),
-    ROOT_FIND_FAILED: (
-        "root_find_failed",
-        "turning point not located: the refinement to q̇ = 0 did not converge (zero "
-        "or non-finite acceleration at the turning point)",
-    ),
-    ENERGY_DRIFT: (
-        "energy_drift",
-        "energy drift beyond energy_tol between release and turning point: the "
-        "trajectory is not trustworthy (tighten the tolerances, or a coordinate "
-        "singularity was crossed)",
-    ),
-    SOLVER_FAILED: (
-        "solver_failed",
-        "the ODE solver failed (step size collapsed or non-finite state) away from "
-        "any detectable singularity of the mass matrix",
-    ),
-    NONFINITE_INPUT: ("nonfinite_input", "the release point q0 is not finite"),
-}
-
-#: Status codes of `sweep_periods` and `period`: `{code: (name, message)}`.
-STATUS_CODES = {code: name for code, (name, _) in _STATUS.items()}
-
-
-def status_message(code) -> str:
-    r"""The meaning of a period status code, as one line of text.
-
-    | code | name | meaning |
-    | --- | --- | --- |
-    | 0 | `success` | the period is trustworthy to about the tolerances |
-    | 1 | `not_oscillating` | released at an equilibrium, no turning point before `t_max`, or the coordinate ran away |
-    | 2 | `max_steps` | `max_steps` reached before the next turning point |
-    | 3 | `singular_mass` | mass matrix singular/indefinite at release or where the solve stopped |
-    | 4 | `root_find_failed` | the turning point could not be located exactly |
-    | 5 | `energy_drift` | energy not conserved to `energy_tol`: the trajectory is garbage |
-    | 6 | `solver_failed` | other solver failure (collapsed step size, non-finite state) |
-    | 7 | `nonfinite_input` | `q0` is NaN or infinite |
-
-    **Arguments:** `code`: an int (or integer scalar array).
-
-    **Returns:** the message, e.g. `"success"`.
-
-    **Raises:** `ValueError` for an unknown code.
-    """  # noqa: E501
-    try:
-        key = int(code)
-        integral = key == code
-    except (TypeError, ValueError):
-        integral = False
-    if not integral:
-        raise ValueError(f"`code` must be an integer status code; got {code!r}.")
-    if key not in _STATUS:
-        raise ValueError(
-            f"`code` must be one of the status codes {sorted(_STATUS)}; got {key}."
-        )
-    return _STATUS[key][1]
+from ._mechanics import _accelerations, _jacobi
+from ._results import (
+    ENERGY_DRIFT,
+    first_of,
+    MAX_STEPS,
+    NONFINITE_INPUT,
+    NOT_OSCILLATING,
+    ROOT_FIND_FAILED,
+    SINGULAR_MASS,
+    SOLVER_FAILED,
+    STATUS_CODES as STATUS_CODES,
+    status_message as status_message,
+    status_result,
+    SUCCESS,
+)
 
 
 # ------------------------------------------------------------------ one lane, traced
@@ -145,13 +74,6 @@ _ESCAPE = 1e6
 _NO_LIMIT = 1e30
 
 
-def _energy(L, q, qdot, t):
-    """The Jacobi integral and the size of its two terms (for its rounding error)."""
-    value, p = jax.value_and_grad(L, argnums=1)(q, qdot, t)
-    kinetic = jnp.dot(qdot, p)
-    return kinetic - value, jnp.abs(kinetic) + jnp.abs(value)
-
-
 class _Lane(eqx.Module):
     """Outputs of one lane (stacked over lanes under vmap)."""
 
@@ -160,7 +82,7 @@ class _Lane(eqx.Module):
     steps: Array  # steps of every batched loop of the lane, shape (n_loops,)
 
 
-_METHODS = {"half": 2, "full": 1, "quarter": 4, "matched": 2}
+_METHODS = ("matched", "half", "full", "quarter")
 _REFINE_SUBSTEPS = 4
 
 
@@ -285,15 +207,12 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
             & jnp.isfinite(a1)
             & (worst <= 10.0)
         )
-        status = jnp.select(
-            [
-                good & refined,
-                good,
-                escaped | ran_out,
-                sol.result == dfx.RESULTS.max_steps_reached,
-            ],
-            [SUCCESS, ROOT_FIND_FAILED, NOT_OSCILLATING, MAX_STEPS],
-            SOLVER_FAILED,
+        status = first_of(
+            (good & refined, SUCCESS),
+            (good, ROOT_FIND_FAILED),
+            (escaped | ran_out, NOT_OSCILLATING),
+            (sol.result == dfx.RESULTS.max_steps_reached, MAX_STEPS),
+            default=SOLVER_FAILED,
         )
         stop = (
             jnp.where(good, s1, sol.ts[-1]),
@@ -328,8 +247,8 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
 
     # Energy check where the solve stopped (normally a turning point).
     q_end, qdot_end, t_end = q0 + Qs * x_end, Vs * v_end, tau * s_last
-    h0, size0 = _energy(L, q0[None], zero[None], zero)
-    h1, size1 = _energy(L, q_end[None], qdot_end[None], t_end)
+    h0, size0 = _jacobi(L, q0[None], zero[None], zero)
+    h1, size1 = _jacobi(L, q_end[None], qdot_end[None], t_end)
     scale = jnp.abs(M0 * a0s) * Qs
     drift = jnp.abs(h1 - h0)
     tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
@@ -350,10 +269,11 @@ def _lane(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method):
             ),
         ),
     )
-    status = jnp.select(
-        [~finite_q0, ~start_ok, ~moving],
-        [NONFINITE_INPUT, SINGULAR_MASS, NOT_OSCILLATING],
-        status,
+    status = first_of(
+        (~finite_q0, NONFINITE_INPUT),
+        (~start_ok, SINGULAR_MASS),
+        (~moving, NOT_OSCILLATING),
+        default=status,
     )
     T = jnp.where(status == SUCCESS, tau * s_total, jnp.nan)
     return _Lane(T, status.astype(jnp.int32), steps.astype(jnp.int32))
@@ -365,62 +285,28 @@ class _NoPeriodError(ValueError, RuntimeError):
     pass
 
 
-def _check_method(method):
-    if method not in _METHODS:
-        raise ValueError(f"`method` must be one of {sorted(_METHODS)}; got {method!r}.")
-    return method
-
-
-# ------------------------------------------------------------------------ checking
-
-
-def _check_solver(solver):
-    if not isinstance(solver, dfx.AbstractAdaptiveSolver):
-        raise TypeError(
-            "`solver` must be an adaptive diffrax solver (the turning point is found "
-            f"with adaptive steps), e.g. diffrax.Dopri8(); got {type(solver).__name__}."
-        )
-
-
-def _check_positive_int(x, name):
-    if isinstance(x, bool) or not isinstance(x, int | np.integer) or x <= 0:
-        raise ValueError(f"`{name}` must be a positive int; got {x!r}.")
-    return int(x)
-
-
-def _check_scalar(x, name, dtype, *, optional=False):
-    if x is None and optional:
-        return None
-    x = as_real_array(x, name) if not isinstance(x, int | float) else jnp.asarray(x)
-    if jnp.ndim(x) != 0:
-        raise ValueError(f"`{name}` must be a scalar; got shape {jnp.shape(x)}.")
-    if is_concrete(x):
-        value = float(x)
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"`{name}` must be a positive finite number; got {value}.")
-    return jnp.asarray(x, dtype)
-
-
-def _check_tolerances(rtol, atol, t_max, energy_tol, dtype):
-    rtol = _check_scalar(rtol, "rtol", dtype)
-    atol = _check_scalar(atol, "atol", dtype)
-    eps = float(jnp.finfo(dtype).eps)
-    if is_concrete(rtol) and float(rtol) < eps:
-        warnings.warn(
-            f"rtol={float(rtol):g} is below the machine epsilon of "
-            f"{jnp.dtype(dtype).name} ({eps:.2g}): the periods cannot reach it. Enable "
-            "float64 (JAX's x64 mode, set by the caller) or loosen rtol.",
-            stacklevel=3,
-        )
-    t_max = _check_scalar(t_max, "t_max", dtype, optional=True)
-    energy_tol = _check_scalar(energy_tol, "energy_tol", dtype, optional=True)
-    return rtol, atol, t_max, energy_tol
-
-
-def _check_L(L, dtype):
-    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
-    z = jnp.zeros((1,), dtype)
-    _check_lagrangian(L, z, z, jnp.zeros((), dtype))
+def _check_options(L, dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method):
+    """The checks `period` and `sweep_periods` share, run once per call."""
+    check_one_dof(L, dtype)
+    check_instance(
+        solver,
+        "solver",
+        dfx.AbstractAdaptiveSolver,
+        "an adaptive diffrax solver (the turning point is found with adaptive steps), "
+        "e.g. diffrax.Dopri8()",
+    )
+    rtol, atol = tolerances(rtol, atol, dtype, stacklevel=3)
+    t_max = positive_scalar(t_max, "t_max", dtype, optional=True)
+    energy_tol = positive_scalar(energy_tol, "energy_tol", dtype, optional=True)
+    max_steps = positive_int(max_steps, "max_steps")
+    return (
+        rtol,
+        atol,
+        t_max,
+        energy_tol,
+        max_steps,
+        check_choice(method, "method", _METHODS),
+    )
 
 
 # ---------------------------------------------------------------------------- period
@@ -511,12 +397,8 @@ def period(
     q0 = q0.reshape(())
     if throw:
         check_finite(q0, "q0")
-    dtype = q0.dtype
-    _check_L(L, dtype)
-    _check_solver(solver)
-    max_steps = _check_positive_int(max_steps, "max_steps")
-    rtol, atol, t_max, energy_tol = _check_tolerances(
-        rtol, atol, t_max, energy_tol, dtype
+    rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
+        L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
     out = _lane(
         L,
@@ -527,7 +409,7 @@ def period(
         energy_tol,
         solver=solver,
         max_steps=max_steps,
-        method=_check_method(method),
+        method=method,
     )
     if throw:
         if is_concrete(out.status):
@@ -543,220 +425,9 @@ def period(
                     f"lagrax.period failed for q0={float(q0)!r}: status {code} "
                     f"({STATUS_CODES[code]}): {status_message(code)}."
                 )
-        else:
-            out = eqx.error_if(
-                out,
-                out.status != SUCCESS,
-                "lagrax.period failed: use sweep_periods (or throw=False) to see the "
-                "status of each amplitude.",
-            )
+        else:  # the status's own message, under jit too
+            out = status_result(out.status).error_if(out, out.status != SUCCESS)
     return out.period
 
 
 # ---------------------------------------------------------------------------- sweep
-
-
-class SweepResult(eqx.Module):
-    r"""The outcome of `sweep_periods`, in the order of the input amplitudes.
-
-    **Fields:**
-
-    - `periods`: the periods, NaN where `status != 0`.
-    - `status`: int32 codes, 0 for success; `lagrax.status_message(code)` says what
-        the others mean.
-    - `num_steps`: solver steps (accepted and rejected) per amplitude, all solves of
-        the lane together.
-    - `lane_steps_useful`: the sum of `num_steps`, the work each lane needed.
-    - `lane_steps_executed`: the lane-steps the batched loops actually ran (a vmapped
-        adaptive loop steps every lane of a chunk until its slowest lane is done, and
-        pads the last chunk).
-    - `chunk_size`: lanes per chunk and device; `num_devices`: devices used.
-    """
-
-    periods: Float[Array, " n"]
-    status: Int[Array, " n"]
-    num_steps: Int[Array, " n"]
-    lane_steps_useful: Int[Array, ""]
-    lane_steps_executed: Int[Array, ""]
-    chunk_size: int = eqx.field(static=True)
-    num_devices: int = eqx.field(static=True)
-    error_estimate: Float[Array, " n"] | None = None
-
-    @property
-    def useful_fraction(self) -> Array:
-        """Useful lane-steps over executed ones (1.0 = no lane ever waited)."""
-        return self.lane_steps_useful / jnp.maximum(self.lane_steps_executed, 1)
-
-    @property
-    def ok(self) -> Array:
-        """Boolean mask of the successful amplitudes."""
-        return self.status == SUCCESS
-
-    def messages(self) -> list[str]:
-        """`status_message` of each amplitude (a Python list; eager only)."""
-        return [status_message(c) for c in np.asarray(self.status)]
-
-
-@functools.lru_cache(maxsize=64)
-def _chunk_solver(L, solver, max_steps, method, has_t_max, has_etol, devices):
-    """The compiled chunk function for one static configuration (cached, so changing
-    amplitudes or tolerances never recompiles)."""
-
-    def lanes(q0, rtol, atol, t_max, energy_tol):
-        lane = functools.partial(
-            _lane,
-            L,
-            solver=solver,
-            max_steps=max_steps,
-            method=method,
-        )
-        out = jax.vmap(lane, in_axes=(0, None, None, None, None))(
-            q0, rtol, atol, t_max if has_t_max else None, energy_tol
-        )
-        # Every solve is its own batched loop: it runs max-over-lanes steps for all.
-        executed = jnp.sum(jnp.max(out.steps, axis=0)) * q0.shape[0]
-        return out.period, out.status, jnp.sum(out.steps, axis=1), executed[None]
-
-    if not has_etol:
-        inner = lanes
-        lanes = lambda q0, rtol, atol, t_max, energy_tol: inner(
-            q0, rtol, atol, t_max, None
-        )
-    if len(devices) == 1:
-        return jax.jit(lanes)
-    mesh = Mesh(np.array(devices), ("lanes",))
-    sharded = jax.shard_map(
-        lanes,
-        mesh=mesh,
-        in_specs=(P("lanes"), P(), P(), P(), P()),
-        out_specs=(P("lanes"), P("lanes"), P("lanes"), P("lanes")),
-        check_vma=False,
-    )
-    return jax.jit(sharded)
-
-
-def sweep_periods(
-    L: Lagrangian,
-    q0: Float[Array, " n"],
-    *,
-    solver: dfx.AbstractAdaptiveSolver = dfx.Dopri8(),
-    rtol: RealScalarLike = 1e-13,
-    atol: RealScalarLike = 1e-13,
-    max_steps: int = 4096,
-    t_max: RealScalarLike | None = None,
-    energy_tol: RealScalarLike | None = None,
-    method: str = "half",
-    chunk_size: int = 256,
-    sort: bool = True,
-    devices: Sequence[jax.Device] | None = None,
-    progress: Callable[[int, int], None] | None = None,
-) -> SweepResult:
-    r"""Periods of many release points at once: `period` over a batch, done fast.
-
-    Each lane computes $T = t(q_0\to q_1) + t(q_1 \to q_0)$ as in `period`. The batch is
-    sorted by $q_0$ and cut into chunks of `chunk_size` lanes per device, so that the
-    lanes of a chunk need about the same number of steps (a vmapped adaptive loop runs
-    every lane until the slowest is done: over 0.01–3.1 rad as one batch only 44 % of
-    lane-steps are useful, in sorted chunks about 90 %). Each chunk is one compiled,
-    `vmap`ped solve, sharded over `devices` with `jax.shard_map` (each device runs its
-    own loop). Amplitudes and tolerances are arrays: changing them never recompiles.
-
-    A failing lane is reported in `status` and never changes the others: their periods
-    are bit-for-bit those of a sweep without it. Differentiable with `jax.grad` (with
-    respect to `q0` and to parameters `L` closes over).
-
-    **Arguments:**
-
-    - `L`: the Lagrangian `L(q, qdot, t) -> scalar` of one coordinate.
-    - `q0`: release points, a 1-D float array.
-    - `solver`, `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in
-        `period` (the same for every lane).
-    - `chunk_size`: lanes per chunk and device (static: changing it compiles anew).
-    - `sort`: sort the release points before chunking (default True).
-    - `devices`: the devices to shard each chunk over (default: all of `jax.devices()`).
-    - `progress`: optional callback `progress(done, total)` after each chunk (eager
-        calls only).
-
-    **Returns:**
-
-    A `lagrax.SweepResult` with `periods`, `status`, `num_steps` in the input order and
-    the work statistics (`useful_fraction`).
-
-    **Raises:**
-
-    `TypeError`/`ValueError` on bad arguments, naming the argument.
-
-    **Example:**
-
-    ```python
-    L = lagrax.systems.pendulum.lagrangian()
-    res = lagrax.sweep_periods(L, jnp.linspace(0.01, 3.1, 4096))
-    res.periods, res.status, res.useful_fraction
-    ```
-    """
-    q0 = as_real_array(q0, "q0")
-    if q0.ndim != 1 or q0.shape[0] == 0:
-        raise ValueError(
-            "`q0` must be a non-empty 1-D array of release points (one per amplitude); "
-            f"got shape {q0.shape}."
-        )
-    dtype = q0.dtype
-    _check_L(L, dtype)
-    _check_solver(solver)
-    max_steps = _check_positive_int(max_steps, "max_steps")
-    chunk_size = _check_positive_int(chunk_size, "chunk_size")
-    rtol, atol, t_max, energy_tol = _check_tolerances(
-        rtol, atol, t_max, energy_tol, dtype
-    )
-    if devices is None:
-        devices = jax.devices()
-    if isinstance(devices, jax.Device | str) or not hasattr(devices, "__iter__"):
-        raise TypeError(
-            f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
-        )
-    devices = tuple(devices)
-    if len(devices) == 0 or not all(isinstance(d, jax.Device) for d in devices):
-        raise TypeError(
-            f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
-        )
-    if progress is not None:
-        check_callable(progress, "progress", "a function progress(done, total)")
-    run = _chunk_solver(
-        L,
-        solver,
-        max_steps,
-        _check_method(method),
-        t_max is not None,
-        energy_tol is not None,
-        devices,
-    )
-    n = q0.shape[0]
-    width = chunk_size * len(devices)
-    n_chunks = -(-n // width)
-    order = jnp.argsort(q0, stable=True) if sort else jnp.arange(n)
-    padded = jnp.concatenate([q0[order], jnp.full(n_chunks * width - n, q0[order][-1])])
-    t_max_arg = jnp.zeros((), dtype) if t_max is None else t_max
-    etol_arg = jnp.zeros((), dtype) if energy_tol is None else energy_tol
-    outs = []
-    for k in range(n_chunks):
-        chunk = padded[k * width : (k + 1) * width]
-        outs.append(run(chunk, rtol, atol, t_max_arg, etol_arg))
-        if progress is not None:
-            jax.block_until_ready(outs[-1])
-            progress(min((k + 1) * width, n), n)
-    periods, status, steps, executed = (jnp.concatenate(x) for x in zip(*outs))
-    inverse = jnp.zeros(n, jnp.int32).at[order].set(jnp.arange(n, dtype=jnp.int32))
-    periods, status, steps = (
-        periods[:n][inverse],
-        status[:n][inverse],
-        steps[:n][inverse],
-    )
-    return SweepResult(
-        periods=periods,
-        status=status,
-        num_steps=steps,
-        lane_steps_useful=jnp.sum(steps),
-        lane_steps_executed=jnp.sum(executed),
-        chunk_size=chunk_size,
-        num_devices=len(devices),
-    )

@@ -26,80 +26,60 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from ._checks import (
+    as_real_array,
+    check_finite,
+    check_one_dof,
+    is_concrete,
+    positive_int,
+    positive_scalar,
+)
 from ._custom_types import Lagrangian
-from ._mechanics import _call_user
-from ._misc import as_real_array, check_callable, is_concrete
+from ._results import (
+    error_if,
+    ESCAPES,
+    first_of,
+    NONFINITE_PERIOD,
+    NOT_NATURAL,
+    NOT_OSCILLATING,
+    ROOT_FIND_FAILED,
+    SINGULAR_MASS,
+    STATUS_CODES,
+    status_message,
+    SUCCESS,
+    UNRESOLVED,
+)
 
 
-SUCCESS = 0
-EQUILIBRIUM = 1
-ESCAPES = 2
-UNRESOLVED = 3
-SINGULAR_MASS = 4
-ROOT_FAILED = 5
-NOT_NATURAL = 6
-NONFINITE = 7
-
-_MESSAGES = {
-    SUCCESS: "success",
-    EQUILIBRIUM: (
-        "does not oscillate: released at rest at an equilibrium (V'(q0) = 0 to "
-        "within the rounding of q0), e.g. the pendulum at the bottom or at pi"
-    ),
-    ESCAPES: (
-        "does not oscillate: no turning point ahead (the energy is above every "
-        "barrier in the direction of motion; the motion is unbounded)"
-    ),
-    UNRESOLVED: (
-        "too close to an unstable equilibrium: the far turning point cannot be "
-        "resolved in this precision (the period there is dominated by rounding)"
-    ),
-    SINGULAR_MASS: "singular mass: m(q) = d2L/dqdot2 is not positive on the path",
-    ROOT_FAILED: (
-        "root finding failed: the far turning point was not found reliably (or a "
-        "barrier lies inside the swing)"
-    ),
-    NOT_NATURAL: (
-        "L is not natural: not of the form m(q) qdot^2 / 2 - V(q) (a term linear or "
-        "beyond quadratic in qdot, or explicit time dependence)"
-    ),
-    NONFINITE: "the period came out non-finite",
-}
+# The statuses are `lagrax.RESULTS` (int view); these names are the quadrature's
+# reasons, as codes of that one enumeration.
+EQUILIBRIUM = NOT_OSCILLATING
+ROOT_FAILED = ROOT_FIND_FAILED
+NONFINITE = NONFINITE_PERIOD
 
 
 def quadrature_status_message(code) -> str:
-    """The message for one status code of `quadrature_period`.
-
-    **Raises:** `ValueError` for anything but one of the codes 0-7.
-    """
-    try:
-        key = int(code)
-        known = key == code and key in _MESSAGES
-    except (TypeError, ValueError):
-        known = False
-    if not known:
-        raise ValueError(
-            f"`code` must be a quadrature status code {sorted(_MESSAGES)}; "
-            f"got {code!r}."
-        )
-    return _MESSAGES[key]
+    """`lagrax.status_message`, under its old name (the codes are shared)."""
+    return status_message(code)
 
 
 class QuadratureResult(eqx.Module):
     r"""What `lagrax.quadrature_period` returns.
 
     - `periods`: the periods $T$, shaped like `q0`; NaN where `status != 0`.
-    - `status`: int codes shaped like `q0`: 0 success, 1 released at an equilibrium,
-        2 escapes (no turning point), 3 too close to an unstable equilibrium to resolve,
-        4 singular mass, 5 root finding failed, 6 L not natural, 7 non-finite. See
-        `messages()` and `lagrax.quadrature_status_message`.
+    - `status`: int codes shaped like `q0`, the int view of `lagrax.RESULTS`
+        (shared with `sweep_periods`; `lagrax.STATUS_CODES`): `success`,
+        `not_oscillating` (at an equilibrium), `escapes`, `unresolved`,
+        `singular_mass`, `root_find_failed`, `not_natural`, `nonfinite_period`. See
+        `messages()` and `lagrax.status_message`.
     - `turning_points`: the far turning point $q_1$ reached from `q0` (NaN on failure).
     - `errors`: an estimate of the relative error of each period from rounding: the
         energy balance that locates $q_1$ is known only to about
         $\varepsilon\,|q_1 - q_0|\,\overline{|V'|}$, which matters near an unstable
         equilibrium (a hilltop), where the period depends on the log of the energy gap.
         Quadrature truncation is not included (it is below 1e-13 with the default
-        nodes except near a hilltop). Points whose estimate exceeds `rtol` get status 3.
+        nodes except near a hilltop). Points whose estimate exceeds `rtol` get
+        status `unresolved`.
     """
 
     periods: Float[Array, "..."]
@@ -109,7 +89,7 @@ class QuadratureResult(eqx.Module):
 
     def messages(self) -> list[str]:
         """One message per release point (flattened), for concrete results."""
-        return [quadrature_status_message(c) for c in np.ravel(self.status)]
+        return [status_message(c) for c in np.ravel(self.status)]
 
 
 # The bracket search: a grid of 352 distances, 2^(-24) to 2^64 times the local scale,
@@ -149,6 +129,8 @@ def _natural_parts(L, dtype):
         L0, Lp, Lm = Lq(q, zero), Lq(q, one), Lq(q, -one)
         m = mass(q)
         p0 = jax.grad(Lq, argnums=1)(q, zero)
+        # Any t far from 0 and from simple fractions will do; this is the fixed point
+        # of cos (so no user's parameter is likely to make L(t) = L(0) by chance).
         Lt = Lq(q, one, jnp.asarray(0.7390851332151607, dtype))
         scale = jnp.abs(L0) + jnp.abs(Lp) + jnp.abs(Lm) + jnp.abs(m)
         tol = 1024 * eps * scale
@@ -340,32 +322,18 @@ def _period_one(L, q0, rtol, nodes: int, inner_nodes: int):
     root_ok = (
         bisection_ok & jnp.isfinite(ell) & (jnp.abs(g_end) <= 1e3 * eps * g_abs + tiny)
     )
-    status = jnp.select(
-        [
-            ~natural_ok,
-            ~(m0 > 0),
-            at_equilibrium,
-            escapes,
-            found & lost,
-            ~found,
-            ~root_ok | ~(A_ok_a & A_ok_b),
-            ~(m_ok_a & m_ok_b & (m1 > 0)),
-            unresolved,
-            ~jnp.isfinite(T),
-        ],
-        [
-            NOT_NATURAL,
-            SINGULAR_MASS,
-            EQUILIBRIUM,
-            ESCAPES,
-            UNRESOLVED,
-            ROOT_FAILED,
-            ROOT_FAILED,
-            SINGULAR_MASS,
-            UNRESOLVED,
-            NONFINITE,
-        ],
-        SUCCESS,
+    status = first_of(
+        (~natural_ok, NOT_NATURAL),
+        (~(m0 > 0), SINGULAR_MASS),
+        (at_equilibrium, EQUILIBRIUM),
+        (escapes, ESCAPES),
+        (found & lost, UNRESOLVED),
+        (~found, ROOT_FAILED),
+        (~root_ok | ~(A_ok_a & A_ok_b), ROOT_FAILED),
+        (~(m_ok_a & m_ok_b & (m1 > 0)), SINGULAR_MASS),
+        (unresolved, UNRESOLVED),
+        (~jnp.isfinite(T), NONFINITE),
+        default=SUCCESS,
     )
     ok = status == SUCCESS
     return (
@@ -419,11 +387,11 @@ def quadrature_period(
     - `q0`: the release points, an array of any shape (each entry one release from
         rest); a scalar gives a scalar period.
     - `rtol`: the largest acceptable estimated relative error (`errors`); a release
-        point beyond it (too near a hilltop for this precision) gets status 3
-        (`UNRESOLVED`) and no number. An array: changing it does not recompile.
+        point beyond it (too near a hilltop for this precision) gets status
+        `unresolved` and no number. An array: changing it does not recompile.
     - `nodes`: Gauss–Legendre nodes of the outer rule (even; static). 128 reaches
         ~1e-13 for the pendulum up to ~1e-2 from the top; releases nearer an unstable
-        equilibrium need more (see the project notes for the measured table).
+        equilibrium need more (or get status `unresolved`).
     - `inner_nodes`: nodes of the inner rule that averages $V'$ (static).
     - `throw`: raise if any release point fails. With `throw=False` failures are in
         `status` and their periods are NaN.
@@ -431,12 +399,13 @@ def quadrature_period(
     **Returns:**
 
     A `QuadratureResult` with `periods`, `status` (0 = success; the codes are listed
-    there and `quadrature_status_message` spells them out) and `turning_points`.
+    there and `lagrax.status_message` spells them out) and `turning_points`.
     Releases that do not oscillate are reported as such, never as a number: at an
     equilibrium (the pendulum at the bottom, or at $\pi$ to within the rounding of
     $q_0$), with no turning point ahead, or too near a hilltop for the turning point to
-    be resolved (status 3). (Beyond the top, e.g. the pendulum released at rest at
-    $\pi + 0.1$, the motion is a swing about $2\pi$, and that period is returned.)
+    be resolved (status `unresolved`). (Beyond the top, e.g. the pendulum released at
+    rest at $\pi + 0.1$, the motion is a swing about $2\pi$, and that period is
+    returned.)
 
     **Raises:**
 
@@ -453,10 +422,8 @@ def quadrature_period(
     res.periods  # = lagrax.systems.pendulum_period(...) to ~1e-14
     ```
     """
-    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
     for name, value in (("nodes", nodes), ("inner_nodes", inner_nodes)):
-        if not isinstance(value, int) or isinstance(value, bool) or value < 2:
-            raise ValueError(f"`{name}` must be an int >= 2; got {value!r}.")
+        positive_int(value, name, minimum=2)
     if nodes % 2:
         raise ValueError(f"`nodes` must be even; got {nodes}.")
     q0 = as_real_array(q0, "q0")
@@ -465,24 +432,9 @@ def quadrature_period(
             f"`q0` must hold at least one release point; got shape {q0.shape}."
         )
     eager = is_concrete(q0)
-    rtol = as_real_array(rtol, "rtol") if not isinstance(rtol, int | float) else rtol
-    if jnp.ndim(rtol) != 0:
-        raise ValueError(f"`rtol` must be a scalar; got shape {jnp.shape(rtol)}.")
-    if is_concrete(rtol) and not (np.isfinite(float(rtol)) and float(rtol) > 0):
-        raise ValueError(f"`rtol` must be positive and finite; got {float(rtol)}.")
-    rtol = jnp.asarray(rtol, q0.dtype)
-    if eager and not bool(jnp.all(jnp.isfinite(q0))):
-        bad = np.asarray(q0)[~np.isfinite(np.asarray(q0))]
-        raise ValueError(f"`q0` must be finite; got non-finite entries {bad[:5]}.")
-    probe = jnp.zeros((1,), q0.dtype)
-    out = _call_user(
-        L, "L", "L(q, qdot, t) -> scalar", probe, probe, jnp.zeros((), q0.dtype)
-    )
-    if getattr(out, "shape", None) != () or not jnp.issubdtype(out.dtype, jnp.floating):
-        raise TypeError(
-            "`L` must be a Lagrangian of one degree of freedom returning a real "
-            f"scalar: L(q, qdot, t) with q of shape (1,) returned {out}."
-        )
+    rtol = positive_scalar(rtol, "rtol", q0.dtype)
+    check_finite(q0, "q0")
+    check_one_dof(L, q0.dtype)
 
     flat = jnp.ravel(q0)
     T, status, q1, est = _periods(L, flat, rtol, nodes, inner_nodes)
@@ -493,20 +445,18 @@ def quadrature_period(
         errors=est.reshape(q0.shape),
     )
     if throw:
-        failed = result.status != SUCCESS
         if eager and is_concrete(result.status):
-            if bool(jnp.any(failed)):
-                codes = np.ravel(np.asarray(result.status))
-                where = np.flatnonzero(codes)
+            codes = np.ravel(np.asarray(result.status))
+            where = np.flatnonzero(codes != SUCCESS)
+            if where.size:
                 first = where[0]
                 raise ValueError(
                     f"lagrax.quadrature_period failed for {where.size} of {codes.size} "
                     f"release points; the first is q0={float(np.ravel(q0)[first])!r}: "
-                    f"{quadrature_status_message(codes[first])}. Pass throw=False to "
-                    "get per-point `status` and NaN periods instead."
+                    f"status {codes[first]} ({STATUS_CODES[codes[first]]}): "
+                    f"{status_message(codes[first])}. Pass throw=False to get "
+                    "per-point `status` and NaN periods instead."
                 )
-        else:
-            result = eqx.error_if(
-                result, failed, "lagrax.quadrature_period: a release point failed"
-            )
+        else:  # the first failed point's own message, under jit too
+            result = error_if(result, result.status)
     return result

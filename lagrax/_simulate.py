@@ -1,25 +1,25 @@
 """The one place that talks to diffrax: vector fields and `simulate`."""
 
-import warnings
 from collections.abc import Callable
 
 import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
-from ._mechanics import _prepare, accelerations
-from ._misc import (
-    as_real_array,
-    as_state,
+from ._checks import (
     as_time,
     check_callable,
     check_finite,
-    describe,
+    check_instance,
+    check_solvable,
     is_concrete,
+    positive_int,
+    prepare,
+    tolerances,
 )
+from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
+from ._mechanics import _accelerations_jit
 from ._term import _LagrangeVectorField, LagrangianTerm
 
 
@@ -57,26 +57,6 @@ def vector_field(
     if force is not None:
         check_callable(force, "force", "a function force(q, qdot, t) -> Q")
     return _LagrangeVectorField(L, force)
-
-
-def _check_tolerance(x, name: str, dtype):
-    x = as_real_array(x, name) if not isinstance(x, int | float) else x
-    if jnp.ndim(x) != 0:
-        raise ValueError(f"`{name}` must be a scalar; got shape {jnp.shape(x)}.")
-    if is_concrete(x):
-        value = float(x)
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"`{name}` must be a positive finite number; got {value}.")
-        eps = float(jnp.finfo(dtype).eps)
-        if name == "rtol" and value < eps:
-            warnings.warn(
-                f"rtol={value:g} is below the machine epsilon of "
-                f"{jnp.dtype(dtype).name} ({eps:.2g}): the solve cannot deliver it. "
-                "Enable float64 "
-                "(JAX's x64 mode, set by the caller) or loosen rtol.",
-                stacklevel=3,
-            )
-    return jnp.asarray(x, dtype=dtype)
 
 
 def default_controller(rtol, atol, t0, t1, dtype):
@@ -174,18 +154,11 @@ def simulate(
     sol = lagrax.simulate(L, jnp.array([1.0]), jnp.array([0.0]), 0.0, 10.0)
     ```
     """
-    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
-    q0, qdot0 = as_state(q0, qdot0, "q0", "qdot0")
+    q0, qdot0, t0 = prepare(L, q0, qdot0, t0, force, names=("q0", "qdot0", "t0"))
     dtype = q0.dtype
-    t0 = as_time(t0, "t0", dtype)
     t1 = as_time(t1, "t1", dtype)
-    q0, qdot0, t0 = _prepare(L, q0, qdot0, t0, force, names=("q0", "qdot0", "t0"))
-    check_finite(q0, "q0")
-    check_finite(qdot0, "qdot0")
-    check_finite(t0, "t0")
     check_finite(t1, "t1")
-    if not isinstance(solver, dfx.AbstractSolver):
-        raise TypeError(f"`solver` must be a diffrax solver; got {describe(solver)}.")
+    check_instance(solver, "solver", dfx.AbstractSolver, "a diffrax solver")
     for value, name, cls in (
         (saveat, "saveat", dfx.SaveAt),
         (stepsize_controller, "stepsize_controller", dfx.AbstractStepSizeController),
@@ -193,16 +166,12 @@ def simulate(
         (adjoint, "adjoint", dfx.AbstractAdjoint),
         (progress_meter, "progress_meter", dfx.AbstractProgressMeter),
     ):
-        if value is not None and not isinstance(value, cls):
-            raise TypeError(
-                f"`{name}` must be a `diffrax.{cls.__name__}`; got {describe(value)}."
-            )
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps <= 0:
-        raise ValueError(f"`max_steps` must be a positive int; got {max_steps!r}.")
+        if value is not None:
+            check_instance(value, name, cls)
+    max_steps = positive_int(max_steps, "max_steps")
     if stepsize_controller is None:
         if isinstance(solver, dfx.AbstractAdaptiveSolver):
-            rtol = _check_tolerance(rtol, "rtol", dtype)
-            atol = _check_tolerance(atol, "atol", dtype)
+            rtol, atol = tolerances(rtol, atol, dtype)
             stepsize_controller = default_controller(rtol, atol, t0, t1, dtype)
         else:
             if dt0 is None:
@@ -222,8 +191,9 @@ def simulate(
                 f"`dt0` must have the sign of t1 - t0; got dt0={float(dt0)} with "
                 f"t0={float(t0)}, t1={float(t1)}."
             )
-    if is_concrete(q0, qdot0, t0):
-        accelerations(L, q0, qdot0, t0, force=force)  # raises on a singular start
+    if is_concrete(q0, qdot0, t0):  # raises on a singular start
+        qddot, (M, ok) = _accelerations_jit(L, q0, qdot0, t0, force)
+        check_solvable(qddot, M, ok, q0, qdot0, t0, names=("q0", "qdot0", "t0"))
     if saveat is None:
         saveat = dfx.SaveAt(t1=True)
     eager = is_concrete(q0, qdot0, t0, t1, dt0)

@@ -37,8 +37,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
+from jaxtyping import Array, Float, Int
 
-from ._mechanics import _accelerations
+from ._checks import as_real_array, check_callable, check_devices, positive_int
+from ._mechanics import _accelerations, _jacobi
+from ._period import _check_options, _lane
+from ._results import (
+    COORDINATE_SINGULARITY,
+    ENERGY_DRIFT,
+    MAX_STEPS as S_MAX_STEPS,
+    NONFINITE_INPUT,
+    NOT_OSCILLATING,
+    NOT_SYMMETRIC,
+    ROOT_FIND_FAILED,
+    SINGULAR_MASS,
+    SOLVER_FAILED,
+    status_message,
+    SUCCESS,
+    TOLERANCE_NOT_MET,
+)
 
 
 # Raw outcomes of the loop, refined into statuses by the post-pass.
@@ -285,8 +302,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
         else:
             g_scale = jnp.abs(x) + jnp.abs(lane["xt"]) + 4 * jnp.abs(h * v1)
         g_noise = 8 * eps * g_scale
-        converged = (locating | crossed) & finite & (
-            (jnp.abs(guess - h) <= conv_tol) | (jnp.abs(g1) <= g_noise)
+        converged = (
+            (locating | crossed)
+            & finite
+            & ((jnp.abs(guess - h) <= conv_tol) | (jnp.abs(g1) <= g_noise))
         )
         converged = converged & ((err <= 10.0) | crossed)
         tries = jnp.where(crossed, 0, lane["tries"] + locating.astype(jnp.int32))
@@ -372,9 +391,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
             rank = jnp.cumsum(free.astype(jnp.int32)) - 1
             new_idx = jnp.where(free, nxt + rank, n)
             fresh = load(new_idx)
-            lane = jax.tree.map(
-                lambda new, old: jnp.where(free, new, old), fresh, lane
-            )
+            lane = jax.tree.map(lambda new, old: jnp.where(free, new, old), fresh, lane)
             return lane, out, (nxt + jnp.sum(free)).astype(jnp.int32)
 
         any_done = jnp.any(lane["done"] & (lane["idx"] < n))
@@ -425,18 +442,6 @@ def _event_slope(kind, sigma, v, a):
 
 def _finish(L, consts, cfg, q0, targets, out, rtol, energy_tol):
     """Statuses, event times and end states from the loop's raw outcomes (vmapped)."""
-    from ._period import (
-        ENERGY_DRIFT,
-        MAX_STEPS as S_MAX_STEPS,
-        NONFINITE_INPUT,
-        NOT_OSCILLATING,
-        ROOT_FIND_FAILED,
-        SINGULAR_MASS,
-        SOLVER_FAILED,
-        SUCCESS,
-        _energy,
-    )
-
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
     zero = jnp.zeros((), dtype)
@@ -454,8 +459,8 @@ def _finish(L, consts, cfg, q0, targets, out, rtol, energy_tol):
         a0s = jnp.where(valid, a0, -1.0)
         tau = jnp.sqrt(Qs / jnp.abs(a0s))
         q_end, qdot_end, t_end = q0 + Qs * x_e, (Qs / tau) * v_e, tau * s_e
-        h0, size0 = _energy(Lp, q0[None], zero[None], zero)
-        h1, size1 = _energy(Lp, q_end[None], qdot_end[None], t_end)
+        h0, size0 = _jacobi(Lp, q0[None], zero[None], zero)
+        h1, size1 = _jacobi(Lp, q_end[None], qdot_end[None], t_end)
         scale = jnp.abs(M0 * a0s) * Qs
         tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
         allowed = tol * scale + 1024 * eps * (size0 + size1)
@@ -510,9 +515,7 @@ def _finish(L, consts, cfg, q0, targets, out, rtol, energy_tol):
 def _device_pass(L, cfg, q0, targets, rtol, atol, t_max, energy_tol, consts):
     t_lim = jnp.asarray(_NO_LIMIT if t_max is None else t_max, q0.dtype)
     out, executed = _run_queue(L, cfg, q0, targets, rtol, atol, t_lim, consts)
-    status, t_e, q_e, qd_e = _finish(
-        L, consts, cfg, q0, targets, out, rtol, energy_tol
-    )
+    status, t_e, q_e, qd_e = _finish(L, consts, cfg, q0, targets, out, rtol, energy_tol)
     return (status, t_e, q_e, qd_e, out["steps"]), executed
 
 
@@ -661,8 +664,6 @@ def _run_method(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol, q1=Non
     """One solve of every release point by `m.method`: periods (NaN on failure),
     statuses, steps, executed lane-steps, and for "matched" the far turning points
     with the width of their rounding band (else None)."""
-    from ._period import ENERGY_DRIFT, NOT_OSCILLATING, SUCCESS
-
     args = (consts, rtol, atol, t_max, energy_tol)
     zeros = jnp.zeros_like(q0)
     if m.method != "matched":
@@ -680,7 +681,9 @@ def _run_method(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol, q1=Non
         if event == "a":
             # T = 4 t(q0 -> q_m) holds for a well mirror-symmetric about q_m: the
             # mirror image of q0 must be a turning point (to rtol across the swing).
-            symmetric = _is_turning_point(L, consts, q0, q_far, rtol * jnp.abs(q_e - q0))
+            symmetric = _is_turning_point(
+                L, consts, q0, q_far, rtol * jnp.abs(q_e - q0)
+            )
             status = jnp.where((status == SUCCESS) & ~symmetric, NOT_SYMMETRIC, status)
         T = jnp.where(status == SUCCESS, factor * t_e, jnp.nan)
         return T, status, steps, executed, None, q_far
@@ -724,8 +727,6 @@ _MASS_SAMPLES = 33
 
 def _blame_coordinates(L, consts, q0, q_far, status):
     """`coordinate_singularity` for failed lanes whose mass vanishes on the swing."""
-    from ._period import SUCCESS
-
     dtype = q0.dtype
     z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
     Lp = lambda q, qd, t: L(q, qd, t, *consts)
@@ -740,10 +741,10 @@ def _blame_coordinates(L, consts, q0, q_far, status):
         ms = jnp.where(jnp.isfinite(ms), ms, 0.0)
         return jnp.min(ms) <= _VANISHING_MASS * jnp.max(ms)
 
-    from ._period import NONFINITE_INPUT, SINGULAR_MASS
-
     # A mass singular at the release point already has its own status.
-    failed = (status != SUCCESS) & (status != SINGULAR_MASS) & (status != NONFINITE_INPUT)
+    failed = (
+        (status != SUCCESS) & (status != SINGULAR_MASS) & (status != NONFINITE_INPUT)
+    )
     failed = failed & jnp.isfinite(q0) & jnp.isfinite(q_far)
     # Only failed lanes need it: under vmap the check costs 33 mass evaluations for
     # every lane, so it is skipped (lax.cond) when no lane failed.
@@ -766,8 +767,6 @@ PROMISE = 100.0
 
 def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     """Periods, statuses, steps, executed lane-steps and error estimates."""
-    from ._period import SUCCESS
-
     T, status, steps, executed, far, q_far = _run_method(
         L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
     )
@@ -779,7 +778,15 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
         q1, found, band = far
         far = (q1 + band, found, band)
     T2, status2, steps2, executed2, _, _ = _run_method(
-        L, m, devices, q0, consts, _LOOSER * rtol, _LOOSER * atol, t_max, energy_tol,
+        L,
+        m,
+        devices,
+        q0,
+        consts,
+        _LOOSER * rtol,
+        _LOOSER * atol,
+        t_max,
+        energy_tol,
         q1=far,
     )
     eps = jnp.finfo(q0.dtype).eps
@@ -792,11 +799,6 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     status = _blame_coordinates(L, consts, q0, q_far, status)
     T = jnp.where(status == SUCCESS, T, jnp.nan)
     return T, status, steps + steps2, executed + executed2, est
-
-
-TOLERANCE_NOT_MET = 12
-COORDINATE_SINGULARITY = 13
-NOT_SYMMETRIC = 14
 
 
 def _is_turning_point(L, consts, q0, q, tol):
@@ -966,19 +968,24 @@ def sweep_periods(
     res.periods, res.status, res.useful_fraction
     ```
     """
-    from ._period import (
-        _check_L,
-        _check_method,
-        _check_positive_int,
-        _check_solver,
-        _check_tolerances,
-        sweep_periods as _sweep_chunked,
-        SweepResult,
+    q0 = as_real_array(q0, "q0")
+    if q0.ndim != 1 or q0.shape[0] == 0:
+        raise ValueError(
+            "`q0` must be a non-empty 1-D array of release points (one per amplitude); "
+            f"got shape {q0.shape}."
+        )
+    rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
+        L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    from ._misc import as_real_array, check_callable
-
+    chunk_size = positive_int(chunk_size, "chunk_size")
+    devices = check_devices(jax.devices() if devices is None else devices)
+    if progress is not None:
+        check_callable(progress, "progress", "a function progress(done, total)")
     tab = explicit_tableau(solver)
     if tab is None:
+        # Without a tableau the kernel cannot step: diffeqsolve in chunks, where
+        # "matched" (two legs and a root solve between them) is not available and
+        # "half" is used instead.
         return _sweep_chunked(
             L,
             q0,
@@ -988,40 +995,14 @@ def sweep_periods(
             max_steps=max_steps,
             t_max=t_max,
             energy_tol=energy_tol,
-            method=method,
+            method="half" if method == "matched" else method,
             chunk_size=chunk_size,
             sort=sort,
             devices=devices,
             progress=progress,
         )
-    q0 = as_real_array(q0, "q0")
-    if q0.ndim != 1 or q0.shape[0] == 0:
-        raise ValueError(
-            "`q0` must be a non-empty 1-D array of release points (one per amplitude); "
-            f"got shape {q0.shape}."
-        )
     dtype = q0.dtype
-    _check_L(L, dtype)
-    _check_solver(solver)
-    max_steps = _check_positive_int(max_steps, "max_steps")
-    chunk_size = _check_positive_int(chunk_size, "chunk_size")
-    rtol, atol, t_max, energy_tol = _check_tolerances(
-        rtol, atol, t_max, energy_tol, dtype
-    )
-    if devices is None:
-        devices = jax.devices()
-    if isinstance(devices, jax.Device | str) or not hasattr(devices, "__iter__"):
-        raise TypeError(
-            f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
-        )
-    devices = tuple(devices)
-    if len(devices) == 0 or not all(isinstance(d, jax.Device) for d in devices):
-        raise TypeError(
-            f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
-        )
-    if progress is not None:
-        check_callable(progress, "progress", "a function progress(done, total)")
-    cfg = _Method(tab, _check_method(method), chunk_size, max_steps, bool(error_estimate))
+    cfg = _Method(tab, method, chunk_size, max_steps, bool(error_estimate))
     L_c, consts = closure_converted(L, dtype)
     n = q0.shape[0]
 
@@ -1055,4 +1036,127 @@ def sweep_periods(
         chunk_size=chunk_size,
         num_devices=len(devices),
         error_estimate=estimate if error_estimate else None,
+    )
+
+
+class SweepResult(eqx.Module):
+    r"""The outcome of `sweep_periods`, in the order of the input amplitudes.
+
+    **Fields:**
+
+    - `periods`: the periods, NaN where `status != 0`.
+    - `status`: int32 codes, 0 for success; `lagrax.status_message(code)` says what
+        the others mean.
+    - `num_steps`: solver steps (accepted and rejected) per amplitude, all solves of
+        the lane together.
+    - `lane_steps_useful`: the sum of `num_steps`, the work each lane needed.
+    - `lane_steps_executed`: the lane-steps the batched loops actually ran (a vmapped
+        adaptive loop steps every lane of a chunk until its slowest lane is done, and
+        pads the last chunk).
+    - `chunk_size`: lanes per chunk and device; `num_devices`: devices used.
+    """
+
+    periods: Float[Array, " n"]
+    status: Int[Array, " n"]
+    num_steps: Int[Array, " n"]
+    lane_steps_useful: Int[Array, ""]
+    lane_steps_executed: Int[Array, ""]
+    chunk_size: int = eqx.field(static=True)
+    num_devices: int = eqx.field(static=True)
+    error_estimate: Float[Array, " n"] | None = None
+
+    @property
+    def useful_fraction(self) -> Array:
+        """Useful lane-steps over executed ones (1.0 = no lane ever waited)."""
+        return self.lane_steps_useful / jnp.maximum(self.lane_steps_executed, 1)
+
+    @property
+    def ok(self) -> Array:
+        """Boolean mask of the successful amplitudes."""
+        return self.status == SUCCESS
+
+    def messages(self) -> list[str]:
+        """`status_message` of each amplitude (a Python list; eager only)."""
+        return [status_message(c) for c in np.asarray(self.status)]
+
+
+@eqx.filter_jit
+def _chunk(L, q0, rtol, atol, t_max, energy_tol, *, solver, max_steps, method, devices):
+    """One chunk of lanes, compiled once per static configuration: `L`, `solver` and
+    the Python values are static, the arrays traced (a `None` `t_max` or
+    `energy_tol` is static too), so changing amplitudes or tolerances never
+    recompiles."""
+    lane = functools.partial(
+        _lane, L, solver=solver, max_steps=max_steps, method=method
+    )
+
+    def lanes(q0, rtol, atol, t_max, energy_tol):
+        out = jax.vmap(lane, in_axes=(0, None, None, None, None))(
+            q0, rtol, atol, t_max, energy_tol
+        )
+        # Every solve is its own batched loop: it runs max-over-lanes steps for all.
+        executed = jnp.sum(jnp.max(out.steps, axis=0)) * q0.shape[0]
+        return out.period, out.status, jnp.sum(out.steps, axis=1), executed[None]
+
+    if len(devices) > 1:
+        lanes = jax.shard_map(
+            lanes,
+            mesh=Mesh(np.array(devices), ("lanes",)),
+            in_specs=(P("lanes"), P(), P(), P(), P()),
+            out_specs=(P("lanes"), P("lanes"), P("lanes"), P("lanes")),
+            check_vma=False,
+        )
+    return lanes(q0, rtol, atol, t_max, energy_tol)
+
+
+def _sweep_chunked(
+    L,
+    q0,
+    *,
+    solver,
+    rtol,
+    atol,
+    max_steps,
+    t_max,
+    energy_tol,
+    method,
+    chunk_size,
+    sort,
+    devices,
+    progress,
+):
+    """The batch through `diffrax.diffeqsolve`, for solvers without an explicit
+    tableau: sorted chunks of `chunk_size` lanes per device, each a `vmap`ped solve
+    (a vmapped adaptive loop runs every lane of a chunk until its slowest is done).
+    Arguments already checked by `sweep_periods`."""
+    n = q0.shape[0]
+    run = functools.partial(
+        _chunk, L, solver=solver, max_steps=max_steps, method=method, devices=devices
+    )
+    width = chunk_size * len(devices)
+    n_chunks = -(-n // width)
+    order = jnp.argsort(q0, stable=True) if sort else jnp.arange(n)
+    padded = jnp.concatenate([q0[order], jnp.full(n_chunks * width - n, q0[order][-1])])
+    outs = []
+    for k in range(n_chunks):
+        chunk = padded[k * width : (k + 1) * width]
+        outs.append(run(chunk, rtol, atol, t_max, energy_tol))
+        if progress is not None:
+            jax.block_until_ready(outs[-1])
+            progress(min((k + 1) * width, n), n)
+    periods, status, steps, executed = (jnp.concatenate(x) for x in zip(*outs))
+    inverse = jnp.zeros(n, jnp.int32).at[order].set(jnp.arange(n, dtype=jnp.int32))
+    periods, status, steps = (
+        periods[:n][inverse],
+        status[:n][inverse],
+        steps[:n][inverse],
+    )
+    return SweepResult(
+        periods=periods,
+        status=status,
+        num_steps=steps,
+        lane_steps_useful=jnp.sum(steps),
+        lane_steps_executed=jnp.sum(executed),
+        chunk_size=chunk_size,
+        num_devices=len(devices),
     )

@@ -5,18 +5,12 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
+from ._checks import call_user, check_callable, describe
 from ._custom_types import Coordinates, Lagrangian, RealScalarLike
-from ._misc import check_callable, describe
 
 
 def _check_phi(phi, u, t):
-    try:
-        out = jax.eval_shape(phi, u, t)
-    except TypeError as e:
-        raise TypeError(
-            "`phi` must be a function phi(u, t) -> q taking the new coordinates u "
-            f"(shape {u.shape}) and the time t; calling it failed with: {e}"
-        ) from e
+    out = call_user(phi, "phi", "phi(u, t) -> q of the new coordinates u", u, t)
     shape = getattr(out, "shape", None)
     dtype = getattr(out, "dtype", None)
     if shape is None or dtype is None or not jnp.issubdtype(dtype, jnp.floating):
@@ -76,7 +70,7 @@ def reparametrize(
 
     **Example:**
 
-    The seed's cycloid, with the cusp at $\theta = 0$, in $u = \cos(\theta/2)$:
+    Huygens' cycloid, with the cusp at $\theta = 0$, in $u = \cos(\theta/2)$:
 
     ```python
     L_theta = lagrax.systems.cycloid.lagrangian(R=1.0, g=9.81)
@@ -85,7 +79,6 @@ def reparametrize(
     # |u| < 1; at the cusps |u| = 1 arccos itself is singular, so there use the
     # closed form.
     lagrax.accelerations(L_u, jnp.array([0.5]), jnp.array([0.0]))  # -(g/4R) * 0.5
-    ```
     ```
     """
     check_callable(L, "L", "a function L(q, qdot, t) -> scalar")

@@ -1,4 +1,3 @@
-import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,9 +10,6 @@ def tree_allclose(x, y, *, rtol=1e-5, atol=1e-8):
         np.allclose(a, b, rtol=rtol, atol=atol)
         for a, b in zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y))
     )
-
-
-adaptive_solvers = (dfx.Tsit5(), dfx.Dopri5(), dfx.Dopri8())
 
 
 def random_states(key, n, count, scale=1.0):

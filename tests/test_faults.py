@@ -22,7 +22,7 @@ import pytest
 import lagrax
 import lagrax._period
 from lagrax import _cli
-from lagrax._period import (
+from lagrax._results import (
     MAX_STEPS,
     NONFINITE_INPUT,
     NOT_OSCILLATING,
@@ -189,7 +189,7 @@ def test_interrupted_rerun_keeps_the_earlier_complete_output(
     ref_bytes, ref = reference
     out = tmp_path / "res.npz"
     out.write_bytes(ref_bytes)  # complete, from an earlier run
-    real = lagrax._period.sweep_periods
+    real = lagrax.sweep_periods
     calls = []
 
     def interrupt_third(*args, **kwargs):
@@ -198,14 +198,14 @@ def test_interrupted_rerun_keeps_the_earlier_complete_output(
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(lagrax._period, "sweep_periods", interrupt_third)
+    monkeypatch.setattr(lagrax, "sweep_periods", interrupt_third)
     rc, _, err = _run(capsys, *ARGV, "--out", str(out))
     assert rc == 130 and "resume" in err
     assert out.read_bytes() == ref_bytes
 
     # Interrupted again, in the middle of writing a checkpoint, then of writing the
     # final file: each time the earlier output stays, and no temporary is left over.
-    monkeypatch.setattr(lagrax._period, "sweep_periods", real)
+    monkeypatch.setattr(lagrax, "sweep_periods", real)
     real_savez = np.savez
     partial = tmp_path / "res.npz.partial"
     for directory in (partial, tmp_path):
@@ -231,7 +231,7 @@ def test_interrupted_rerun_keeps_the_earlier_complete_output(
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(lagrax._period, "sweep_periods", count)
+    monkeypatch.setattr(lagrax, "sweep_periods", count)
     rc, _, _ = _run(capsys, *ARGV, "--out", str(out))
     assert rc == 0 and calls == []
     _assert_same(_load(out), ref)
@@ -305,13 +305,13 @@ def test_failing_amplitudes_counted_and_exit_1(
     capsys, monkeypatch, tmp_path, reference
 ):
     _, ref = reference
-    real = lagrax._period.sweep_periods
+    real = lagrax.sweep_periods
 
     def spoil(L, q0, **kwargs):
         q0 = q0.at[::7].set(jnp.nan)  # every 7th amplitude of each block
         return real(L, q0, **kwargs)
 
-    monkeypatch.setattr(lagrax._period, "sweep_periods", spoil)
+    monkeypatch.setattr(lagrax, "sweep_periods", spoil)
     out = tmp_path / "res.npz"
     loud = [a for a in ARGV if a != "--quiet"]
     rc, stdout, err = _run(capsys, *loud, "--out", str(out))
@@ -357,7 +357,7 @@ def test_unwritable_outputs_fail_before_the_sweep(capsys, monkeypatch, tmp_path)
     def boom(*args, **kwargs):
         raise AssertionError("the sweep ran")
 
-    monkeypatch.setattr(lagrax._period, "sweep_periods", boom)
+    monkeypatch.setattr(lagrax, "sweep_periods", boom)
     good = tmp_path / "res.npz"
     directory = tmp_path / "dir.csv"
     directory.mkdir()

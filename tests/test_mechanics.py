@@ -16,7 +16,7 @@ def _acc(L, q, qdot, t=0.0, force=None):
 
 
 @pytest.mark.parametrize("m,r,g", [(1.0, 1.0, 1.0), (2.5, 0.3, 9.81), (0.1, 7.0, 1.6)])
-def test_pendulum_matches_seed(key, m, r, g):
+def test_pendulum_matches_hand_derivation(key, m, r, g):
     L = pendulum.lagrangian(m=m, r=r, g=g)
     q, qdot = random_states(key, 1, 50, scale=2.0)
     got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(q, qdot)
@@ -25,8 +25,8 @@ def test_pendulum_matches_seed(key, m, r, g):
 
 
 @pytest.mark.parametrize("m,R,g", [(1.0, 1.0, 1.0), (3.0, 0.5, 9.81)])
-def test_cycloid_matches_seed(key, m, R, g):
-    # The seed's final form, 2Rθ̈ sin(θ/2) + Rθ̇² cos(θ/2) − g cos(θ/2) = 0, off the cusp.
+def test_cycloid_matches_hand_derivation(key, m, R, g):
+    # Huygens' cycloid in θ: 2Rθ̈ sin(θ/2) + Rθ̇² cos(θ/2) − g cos(θ/2) = 0, off the cusp.
     L = cycloid.lagrangian(m=m, R=R, g=g)
     kq, kv = jax.random.split(key)
     theta = jax.random.uniform(kq, (50, 1), minval=0.05, maxval=2 * jnp.pi - 0.05)
@@ -202,45 +202,3 @@ def test_jit_vmap_equal_loop(key):
         [lagrax.accelerations(L, a, b, 0.3) for a, b in zip(theta, thetadot)]
     )
     np.testing.assert_allclose(got, loop, rtol=1e-14, atol=1e-14)
-
-
-class TestBadInput:
-    L = staticmethod(pendulum.lagrangian())
-
-    def test_not_callable(self):
-        with pytest.raises(TypeError, match="`L` must be a function"):
-            lagrax.accelerations(3.0, jnp.ones(1), jnp.ones(1))
-
-    def test_non_scalar_lagrangian(self):
-        with pytest.raises(TypeError, match=r"`L` must return .*scalar.*shape \(2,\)"):
-            lagrax.accelerations(lambda q, v, t: q * v, jnp.ones(2), jnp.ones(2))
-
-    def test_not_1d(self):
-        with pytest.raises(ValueError, match=r"`q` must be a 1-D array.*shape \(\)"):
-            lagrax.accelerations(self.L, jnp.array(0.5), jnp.array(0.5))
-        with pytest.raises(ValueError, match=r"`qdot` must be a 1-D"):
-            lagrax.accelerations(self.L, jnp.ones(1), jnp.ones((1, 1)))
-
-    def test_length_mismatch(self):
-        with pytest.raises(ValueError, match=r"same length.*\(2,\).*\(3,\)"):
-            lagrax.accelerations(self.L, jnp.ones(2), jnp.ones(3))
-
-    def test_integer_dtype(self):
-        with pytest.raises(TypeError, match="`q` must have a real floating dtype"):
-            lagrax.accelerations(self.L, jnp.array([1]), jnp.array([0.0]))
-
-    def test_complex_dtype(self):
-        with pytest.raises(TypeError, match="`qdot`.*complex"):
-            lagrax.accelerations(self.L, jnp.ones(1), jnp.ones(1, dtype=complex))
-
-    def test_bad_force(self):
-        with pytest.raises(TypeError, match=r"`force` must return .*shape \(1,\)"):
-            lagrax.accelerations(
-                self.L, jnp.ones(1), jnp.ones(1), force=lambda q, v, t: jnp.ones(2)
-            )
-        with pytest.raises(TypeError, match="`force` must be a function"):
-            lagrax.accelerations(self.L, jnp.ones(1), jnp.ones(1), force=1.0)
-
-    def test_nonfinite_state_eager(self):
-        with pytest.raises(ValueError, match="not finite"):
-            lagrax.accelerations(self.L, jnp.array([jnp.nan]), jnp.ones(1))

@@ -333,7 +333,7 @@ def test_energy_balance_double_pendulum_with_drag_on_both_bobs():
 # ---------------------------------------------------------------- exact references
 
 
-def test_degrees_of_freedom_of_the_seed_examples():
+def test_degrees_of_freedom_of_the_textbook_examples():
     R, l = 1.5, 1.0
     q_sphere, q_arm = jnp.array([0.7, 0.2]), jnp.array([0.2])
     r = sphere.positions(R=R)(q_sphere, 0.0)

@@ -1,4 +1,3 @@
-import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -40,23 +39,16 @@ def asymmetric_reference(x0):
     return 2 * quad(f, 0, np.pi / 2, epsabs=0, epsrel=1e-13, limit=400)[0]
 
 
-def test_pendulum_accuracy_256():
-    a = jnp.linspace(1e-3, jnp.pi - 1e-3, 256)
+@pytest.mark.parametrize(
+    "n,useful", [(256, 0.0), pytest.param(4096, 0.85, marks=pytest.mark.slow)]
+)
+def test_pendulum_accuracy(n, useful):
+    a = jnp.linspace(1e-3, jnp.pi - 1e-3, n)
     res = lagrax.sweep_periods(PENDULUM, a, method="quarter")
     assert np.all(np.asarray(res.status) == 0)
     err = np.abs(np.asarray(res.periods / pendulum.pendulum_period(a)) - 1)
     assert err.max() <= 1e-12
-    assert 0 < float(res.useful_fraction) <= 1
-
-
-@pytest.mark.slow
-def test_pendulum_accuracy_4096():
-    a = jnp.linspace(1e-3, jnp.pi - 1e-3, 4096)
-    res = lagrax.sweep_periods(PENDULUM, a, method="quarter")
-    assert np.all(np.asarray(res.status) == 0)
-    err = np.abs(np.asarray(res.periods / pendulum.pendulum_period(a)) - 1)
-    assert err.max() <= 1e-12
-    assert float(res.useful_fraction) >= 0.85
+    assert useful < float(res.useful_fraction) <= 1
 
 
 @pytest.mark.slow
@@ -145,16 +137,6 @@ def test_status_codes_along_the_way():
     assert np.all(np.asarray(res.status) == lagrax._period.ENERGY_DRIFT)
 
 
-def test_status_messages():
-    codes = lagrax.STATUS_CODES
-    assert codes[0] == "success" and len(codes) == 8
-    for code in codes:
-        assert isinstance(lagrax.status_message(code), str)
-    assert "singular" in lagrax.status_message(3)
-    with pytest.raises(ValueError, match="code"):
-        lagrax.status_message(99)
-
-
 def test_failed_lane_does_not_change_the_others():
     a = jnp.linspace(0.1, 3.0, 300)
     clean = lagrax.sweep_periods(PENDULUM, a, method="quarter")
@@ -236,22 +218,3 @@ def test_period_eager_and_jit():
     with pytest.raises(RuntimeError, match="not_oscillating"):
         lagrax.period(PENDULUM, 0.0)
     assert np.isnan(lagrax.period(PENDULUM, 0.0, throw=False))
-
-
-def test_bad_arguments():
-    with pytest.raises(TypeError, match="`L`"):
-        lagrax.sweep_periods("pendulum", jnp.array([1.0]))
-    with pytest.raises(ValueError, match="`q0`"):
-        lagrax.sweep_periods(PENDULUM, jnp.ones((2, 2)))
-    with pytest.raises(TypeError, match="`q0`"):
-        lagrax.sweep_periods(PENDULUM, jnp.array([1, 2]))
-    with pytest.raises(ValueError, match="`rtol`"):
-        lagrax.sweep_periods(PENDULUM, jnp.array([1.0]), rtol=-1.0)
-    with pytest.raises(ValueError, match="`method`"):
-        lagrax.sweep_periods(PENDULUM, jnp.array([1.0]), method="eighth")
-    with pytest.raises(ValueError, match="`chunk_size`"):
-        lagrax.sweep_periods(PENDULUM, jnp.array([1.0]), chunk_size=0)
-    with pytest.raises(TypeError, match="`solver`"):
-        lagrax.sweep_periods(PENDULUM, jnp.array([1.0]), solver=dfx.Euler())
-    with pytest.raises(ValueError, match="`q0`"):
-        lagrax.period(PENDULUM, jnp.array([1.0, 2.0]))

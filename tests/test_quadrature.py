@@ -185,21 +185,3 @@ def test_not_natural_lagrangians():
     assert np.all(np.isnan(np.asarray(res.periods)))
     with pytest.raises(ValueError, match="not natural"):
         lagrax.quadrature_period(lambda q, v, t: L(q, v, t, cs[2]), jnp.array(0.5))
-
-
-def test_bad_input():
-    L = PEND
-    with pytest.raises(TypeError, match="`L`"):
-        lagrax.quadrature_period("pendulum", 1.0)
-    with pytest.raises(TypeError, match="`q0`"):
-        lagrax.quadrature_period(L, jnp.array([1, 2]))
-    with pytest.raises(ValueError, match="`q0`"):
-        lagrax.quadrature_period(L, jnp.array([]))
-    with pytest.raises(ValueError, match="`q0` must be finite"):
-        lagrax.quadrature_period(L, jnp.array([1.0, jnp.nan]))
-    with pytest.raises(ValueError, match="`nodes`"):
-        lagrax.quadrature_period(L, 1.0, nodes=33)
-    with pytest.raises(ValueError, match="`rtol`"):
-        lagrax.quadrature_period(L, 1.0, rtol=-1.0)
-    with pytest.raises(TypeError, match="one degree of freedom"):
-        lagrax.quadrature_period(lambda q, v, t: q, 1.0)

@@ -1,4 +1,6 @@
-"""Exact references shipped with the seed systems."""
+"""The built-in systems: their exact references, and the one shape every module has."""
+
+import inspect
 
 import jax
 import jax.numpy as jnp
@@ -6,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.special import ellipkm1
 
+import lagrax
 from lagrax.systems import cycloid, pendulum
 
 
@@ -19,7 +22,7 @@ def test_pendulum_period_against_elliptic_integral():
 
 
 def test_pendulum_period_known_ratios():
-    # DESIGN.md: T/T0 = 1.180340599 at 90°, 3.901065160 at 179°.
+    # Published values: T/T0 = 1.180340599 at 90°, 3.901065160 at 179°.
     T0 = pendulum.small_amplitude_period()
     ratios = pendulum.pendulum_period(jnp.deg2rad(jnp.array([90.0, 179.0]))) / T0
     np.testing.assert_allclose(ratios, [1.180340599, 3.901065160], atol=1e-9)
@@ -56,3 +59,95 @@ def test_cycloid_position_and_coordinates():
     np.testing.assert_allclose(
         cycloid.theta_from_u(jnp.cos(theta / 2)), theta, rtol=1e-12
     )
+
+
+# Every system module has the same shape: one test covers them all. Per system:
+# parameters away from the defaults, the number of coordinates, and the range of q
+# where its hand-derived equation holds (off the poles, off the cusp).
+SHAPE = {
+    "asymmetric_well": (dict(m=1.3, k=0.7, a=0.4), 1, (-1.0, 1.0)),
+    "charged_particle": (
+        dict(m=1.3, charge=-0.7, B=(0.2, -0.4, 1.1), E=(0.3, 0.1, -0.2)),
+        3,
+        (-2.0, 2.0),
+    ),
+    "cycloid": (dict(m=1.3, R=0.7, g=9.81), 1, (0.2, 6.0)),
+    "damped_pendulum": (dict(m=1.3, l=0.7, g=9.81, b=0.3, c=0.2), 1, (-3.0, 3.0)),
+    "double_pendulum": (dict(m1=1.3, m2=0.6, l1=0.7, l2=1.1, g=9.81), 2, (-3.0, 3.0)),
+    "driven_pendulum": (
+        dict(m=1.3, l=0.7, g=9.81, ax=0.1, ay=0.2, omega=5.0),
+        1,
+        (-3.0, 3.0),
+    ),
+    "pendulum": (dict(m=1.3, r=0.7, g=9.81), 1, (-3.0, 3.0)),
+    "rectilinear": (dict(potential=lambda x: x**4 - jnp.cos(x), m=1.3), 1, (-2, 2)),
+    "rotating_hoop": (dict(m=1.3, R=0.7, Omega=4.0, g=9.81), 1, (-3.0, 3.0)),
+    "sphere": (dict(m=1.3, R=0.7, g=9.81), 2, (0.3, 2.8)),
+    "spherical_pendulum": (dict(m=1.3, l=0.7, g=9.81), 2, (0.3, 2.8)),
+}
+
+
+def test_every_system_is_listed():
+    assert sorted(SHAPE) == sorted(lagrax.systems.SYSTEMS)
+
+
+@pytest.mark.parametrize("name", sorted(SHAPE))
+def test_system_module_shape(name, key):
+    module = lagrax.systems.SYSTEMS[name]
+    params, n, (lo, hi) = SHAPE[name]
+    defaults = lagrax.systems.parameters(name)
+    # Every parameter has a default, and the test sets every one of them.
+    assert set(defaults) == set(params)
+    assert callable(module.lagrangian())  # the defaults are accepted
+    lagrangian_params = {k: v for k, v in params.items() if k in ("b", "c")}
+    L = module.lagrangian(
+        **{k: v for k, v in params.items() if k not in lagrangian_params}
+    )
+    force = None
+    if hasattr(module, "force"):
+        force_keys = inspect.signature(module.force).parameters
+        force = module.force(**{k: v for k, v in params.items() if k in force_keys})
+    kq, kv = jax.random.split(key)
+    q = jax.random.uniform(kq, (20, n), minval=lo, maxval=hi)
+    qdot = jax.random.normal(kv, (20, n))
+    t = jnp.linspace(0.0, 2.0, 20)
+    got = jax.vmap(lambda a, b, s: lagrax.accelerations(L, a, b, s, force=force))(
+        q, qdot, t
+    )
+    want = jax.vmap(lambda a, b, s: module.acceleration(a, b, s, **params))(q, qdot, t)
+    assert want.shape == (20, n)
+    np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11)
+    if hasattr(module, "period"):
+        # Against the quadrature oracle, from the same Lagrangian.
+        amplitude = jnp.array([0.4, 1.3, 2.5])
+        q0 = amplitude if name != "cycloid" else jnp.pi - amplitude
+        oracle = lagrax.quadrature_period(L, q0).periods
+        np.testing.assert_allclose(
+            module.period(amplitude, **params), oracle, rtol=1e-12
+        )
+
+
+def test_old_names_are_aliases():
+    a = jnp.array([0.3, 1.7])
+    np.testing.assert_array_equal(
+        pendulum.pendulum_period(a, 0.7, 9.81), pendulum.period(a, r=0.7, g=9.81)
+    )
+    np.testing.assert_array_equal(
+        cycloid.cycloid_period(a, 0.7, 9.81), cycloid.period(a, R=0.7, g=9.81)
+    )
+    assert lagrax.systems.pendulum_period is pendulum.pendulum_period
+    # The older acceleration calls, with fewer arguments.
+    np.testing.assert_array_equal(
+        pendulum.acceleration(a, r=0.7, g=9.81), -(9.81 / 0.7) * jnp.sin(a)
+    )
+    F = lambda x: -4 * x**3
+    np.testing.assert_allclose(
+        lagrax.systems.rectilinear.acceleration(a, F, m=2.0),
+        lagrax.systems.rectilinear.acceleration(a, potential=lambda x: x**4, m=2.0),
+        rtol=1e-14,
+    )
+
+
+def test_parameters_unknown_system():
+    with pytest.raises(ValueError, match="`system` must be one of"):
+        lagrax.systems.parameters("pendulm")

@@ -1,9 +1,24 @@
 """Ready-made Lagrangians, each with its exact references.
 
-Each module holds one system: its Lagrangian as a factory taking physical parameters as
-keywords and returning a plain `L(q, qdot, t)`, its hand-derived equation of motion, and
-exact references (periods) where they exist.
+Every module here has the same shape:
+
+- `lagrangian(**params)` returns a plain `L(q, qdot, t)`; every parameter is a keyword
+    with a default (`rectilinear`'s `potential` is a function, default `harmonic`);
+- `acceleration(q, qdot, t=0.0, **params)`: the hand-derived equation of motion,
+    $\\ddot q$ of shape `(n,)`, the same parameters (those that do not enter, such as
+    a pendulum's mass, are accepted and ignored);
+- `period(amplitude, **params)` where the period is known in closed form (`pendulum`,
+    `cycloid`);
+- `force(**params)` where the system has a non-conservative force
+    (`damped_pendulum`): then `acceleration` solves Lagrange's equations with it.
+
+`parameters(module)` lists a system's parameters and their defaults. Older names are
+kept as aliases: `pendulum.pendulum_period`, `cycloid.cycloid_period` (with their
+parameters also positional), and the older `acceleration` calls with fewer arguments
+(e.g. `pendulum.acceleration(theta, r=..., g=...)`).
 """
+
+import inspect
 
 from . import (
     asymmetric_well as asymmetric_well,
@@ -19,3 +34,46 @@ from . import (
     spherical_pendulum as spherical_pendulum,
 )
 from .pendulum import pendulum_period as pendulum_period
+
+
+#: Every built-in system, by name.
+SYSTEMS = {
+    module.__name__.rsplit(".", 1)[-1]: module
+    for module in (
+        asymmetric_well,
+        charged_particle,
+        cycloid,
+        damped_pendulum,
+        double_pendulum,
+        driven_pendulum,
+        pendulum,
+        rectilinear,
+        rotating_hoop,
+        sphere,
+        spherical_pendulum,
+    )
+}
+
+
+def parameters(system) -> dict:
+    """The parameters of a built-in system and their defaults, `{name: default}`: the
+    keywords of its `lagrangian` and, where it has one, of its `force`.
+
+    **Arguments:** `system`: a module of `lagrax.systems` or its name.
+
+    **Raises:** `ValueError` for an unknown name.
+    """
+    if isinstance(system, str):
+        if system not in SYSTEMS:
+            raise ValueError(
+                f"`system` must be one of {sorted(SYSTEMS)}; got {system!r}."
+            )
+        system = SYSTEMS[system]
+    functions = [system.lagrangian] + (
+        [system.force] if hasattr(system, "force") else []
+    )
+    return {
+        name: p.default
+        for f in functions
+        for name, p in inspect.signature(f).parameters.items()
+    }

@@ -31,9 +31,12 @@ def potential(x, *, k=1.0, a=1.0):
     return 0.5 * k * x**2 + a * x**3 / 3
 
 
-def acceleration(x, *, m=1.0, k=1.0, a=1.0):
-    r"""The hand-derived equation of motion $\ddot x = -(kx + ax^2)/m$."""
-    return -(k * x + a * x**2) / m
+def acceleration(q, qdot=None, t=0.0, *, m=1.0, k=1.0, a=1.0):
+    r"""The hand-derived equation of motion $\ddot x = -(kx + ax^2)/m$.
+
+    Elementwise in `q`; `qdot` and `t` do not enter (so `acceleration(x, m=...)`, the
+    older call, still works)."""
+    return -(k * q + a * q**2) / m
 
 
 def barrier(*, k=1.0, a=1.0):

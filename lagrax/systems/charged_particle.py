@@ -12,8 +12,9 @@ drifting at $E\times B/|B|^2$.
 """
 
 import jax.numpy as jnp
+import numpy as np
 
-from .._misc import describe
+from .._checks import describe
 
 
 def _check_field(x, name):
@@ -22,6 +23,8 @@ def _check_field(x, name):
     if isinstance(x, str | bytes) or x is None or callable(x):
         raise TypeError(f"{expected}; got {describe(x)}.")
     try:
+        if isinstance(x, list | tuple):  # the defaults are tuples
+            x = np.asarray(x)
         dtype = jnp.result_type(x)
         shape = jnp.shape(x)
     except (TypeError, ValueError) as e:
@@ -61,7 +64,9 @@ def lagrangian(*, m=1.0, charge=1.0, B=(0.0, 0.0, 1.0), E=(0.0, 0.0, 0.0)):
     return L
 
 
-def acceleration(q, qdot, *, m=1.0, charge=1.0, B=(0.0, 0.0, 1.0), E=(0.0, 0.0, 0.0)):
+def acceleration(
+    q, qdot, t=0.0, *, m=1.0, charge=1.0, B=(0.0, 0.0, 1.0), E=(0.0, 0.0, 0.0)
+):
     r"""The Lorentz force law $\ddot r = (e/m)(E + \dot r\times B)$."""
     _check_field(B, "B")
     _check_field(E, "E")

@@ -1,6 +1,6 @@
 r"""Huygens' cycloidal pendulum: a bob of mass $m$ on an inverted cycloid of radius $R$.
 
-In the seed's coordinate $\theta$ (the angle the generating circle has rolled; cusp at
+In Huygens' coordinate $\theta$ (the angle the generating circle has rolled; cusp at
 $\theta = 0$, lowest point at $\theta = \pi$),
 $x = R(\theta - \sin\theta)$, $z = R(1 - \cos\theta)$ (downwards) and
 
@@ -14,7 +14,7 @@ amplitude, the cusp included.
 
 import jax.numpy as jnp
 
-from .pendulum import _as_positive
+from .._checks import positive_array
 
 
 def lagrangian(*, m=1.0, R=1.0, g=1.0):
@@ -45,26 +45,39 @@ def lagrangian_u(*, m=1.0, R=1.0, g=1.0):
     return L
 
 
-def acceleration(theta, thetadot, *, R=1.0, g=1.0):
-    r"""The seed's final form, solved for $\ddot\theta$ (valid off the cusp):
+def acceleration(q, qdot, t=0.0, *, m=1.0, R=1.0, g=1.0):
+    r"""The equation of motion in $\theta$,
 
-    $2R\ddot\theta\sin(\theta/2) + R\dot\theta^2\cos(\theta/2) - g\cos(\theta/2) = 0$.
+    $$2R\ddot\theta\sin(\theta/2) + R\dot\theta^2\cos(\theta/2) - g\cos(\theta/2) = 0,$$
+
+    solved for $\ddot\theta$ (valid off the cusp). Elementwise in `q`, `qdot` (shape
+    `(1,)`, or the scalars $\theta$, $\dot\theta$); `t` and `m` do not enter.
     """
-    return (g - R * thetadot**2) * jnp.cos(theta / 2) / (2 * R * jnp.sin(theta / 2))
+    return (g - R * qdot**2) * jnp.cos(q / 2) / (2 * R * jnp.sin(q / 2))
 
 
-def cycloid_period(amplitude=None, R=1.0, g=1.0):
+def acceleration_u(q, qdot, t=0.0, *, m=1.0, R=1.0, g=1.0):
+    r"""The equation of motion in $u = \cos(\theta/2)$: $\ddot u = -(g/4R)\,u$."""
+    return -(g / (4 * R)) * q
+
+
+def period(amplitude=None, *, m=1.0, R=1.0, g=1.0):
     r"""$T = 4\pi\sqrt{R/g}$, independent of the amplitude (broadcast to its shape).
 
     **Raises:** `TypeError` if `R` or `g` is not real; `ValueError` if either is not
     positive (checked when its value is known, i.e. not under `jit`/`vmap`).
     """
-    R = _as_positive(R, "R")
-    g = _as_positive(g, "g")
+    R = positive_array(R, "R")
+    g = positive_array(g, "g")
     T = 4 * jnp.pi * jnp.sqrt(R / g)
     if amplitude is None:
         return T
     return jnp.broadcast_to(T, jnp.shape(amplitude))
+
+
+def cycloid_period(amplitude=None, R=1.0, g=1.0):
+    """Alias of `period` (its older name, with `R` and `g` also positional)."""
+    return period(amplitude, R=R, g=g)
 
 
 def theta_from_u(u):

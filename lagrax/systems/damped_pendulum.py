@@ -75,7 +75,11 @@ def rayleigh_force(*, l=1.0, b=0.0, c=0.0):
     return dissipation_force(rayleigh_function(l=l, b=b, c=c))
 
 
-def acceleration(q, qdot, *, m=1.0, l=1.0, g=1.0, b=0.0, c=0.0):
+#: The module's non-conservative force, under the name every system module uses.
+force = drag_force
+
+
+def acceleration(q, qdot, t=0.0, *, m=1.0, l=1.0, g=1.0, b=0.0, c=0.0):
     r"""The hand-derived damped equation
 
     $$\ddot\theta = -\frac gl\sin\theta - \frac bm\dot\theta

@@ -35,7 +35,7 @@ def lagrangian(*, m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
     )
 
 
-def acceleration(q, qdot, *, m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
+def acceleration(q, qdot, t=0.0, *, m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
     r"""The hand-derived closed form, with $\Delta = \theta_1 - \theta_2$ and
     $D = 2m_1 + m_2 - m_2\cos 2\Delta$:
 

@@ -40,7 +40,7 @@ def lagrangian(*, m=1.0, l=1.0, g=1.0, ax=0.0, ay=0.0, omega=1.0):
     )
 
 
-def acceleration(q, qdot, t, *, l=1.0, g=1.0, ax=0.0, ay=0.0, omega=1.0):
+def acceleration(q, qdot, t=0.0, *, m=1.0, l=1.0, g=1.0, ax=0.0, ay=0.0, omega=1.0):
     r"""The hand-derived equation of motion: the pendulum in the support's frame, with
     gravity $g + \ddot s_y$ and the inertial force $-m\ddot s_x$,
 

@@ -9,9 +9,8 @@ $T = 2\pi\sqrt{r/g}\,/\,\mathrm{AGM}(1, \cos(\theta_0/2))$.
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from .._misc import as_real_array, is_concrete
+from .._checks import as_real_promoting_ints, positive_array
 
 
 def lagrangian(*, m=1.0, r=1.0, g=1.0):
@@ -23,36 +22,18 @@ def lagrangian(*, m=1.0, r=1.0, g=1.0):
     return L
 
 
-def acceleration(theta, *, r=1.0, g=1.0):
-    r"""The hand-derived equation of motion $\ddot\theta = -(g/r)\sin\theta$."""
-    return -(g / r) * jnp.sin(theta)
+def acceleration(q, qdot=None, t=0.0, *, m=1.0, r=1.0, g=1.0):
+    r"""The hand-derived equation of motion $\ddot\theta = -(g/r)\sin\theta$.
+
+    Elementwise in `q` (shape `(1,)` as everywhere, or any shape); `qdot`, `t` and `m`
+    do not enter, so the older call `acceleration(theta, r=..., g=...)` still works.
+    """
+    return -(g / r) * jnp.sin(q)
 
 
 def small_amplitude_period(*, r=1.0, g=1.0):
     r"""$T_0 = 2\pi\sqrt{r/g}$, the limit of the period as the amplitude goes to 0."""
     return 2 * jnp.pi * jnp.sqrt(jnp.asarray(r) / g)
-
-
-def _as_real(x, name):
-    # Python ints and integer arrays are harmless here (a length, an angle in whole
-    # radians): promote them to the default float. Strings, complex, bool: rejected.
-    if not isinstance(x, str | bytes | bool) and x is not None:
-        try:
-            dtype = jnp.result_type(x)
-        except TypeError:
-            dtype = None
-        if dtype is not None and jnp.issubdtype(dtype, jnp.integer):
-            x = jnp.asarray(x, dtype=jnp.result_type(float))
-    return as_real_array(x, name)
-
-
-def _as_positive(x, name):
-    """A real float array, positive wherever its values are known (eager calls)."""
-    x = _as_real(x, name)
-    # numpy, not jnp: inside a jit trace a jnp op on a concrete array is a tracer.
-    if is_concrete(x) and not np.all(np.asarray(x) > 0):
-        raise ValueError(f"`{name}` must be positive; got {np.asarray(x)!r}.")
-    return x
 
 
 def _agm(a, b, iterations=12):
@@ -67,7 +48,7 @@ def _agm(a, b, iterations=12):
     return 0.5 * (a + b)
 
 
-def pendulum_period(amplitude, r=1.0, g=1.0):
+def period(amplitude, *, m=1.0, r=1.0, g=1.0):
     r"""Exact period of the pendulum released from rest at angle `amplitude`.
 
     $$T = \frac{2\pi\sqrt{r/g}}{\mathrm{AGM}(1, \cos(\theta_0/2))}$$
@@ -76,7 +57,7 @@ def pendulum_period(amplitude, r=1.0, g=1.0):
     float64, differentiable, and elementwise over arrays.
 
     **Arguments:** `amplitude`: $\theta_0$ in radians (real; integers are promoted to
-    float); `r`, `g`: length and gravity, positive.
+    float); `r`, `g`: length and gravity, positive; `m` does not enter.
 
     **Returns:** $T$; `inf` where $|\theta_0| \ge \pi$ (at $\pi$ the bob balances
     forever, beyond it a release from rest is a swing of amplitude $2\pi - |\theta_0|$
@@ -88,10 +69,15 @@ def pendulum_period(amplitude, r=1.0, g=1.0):
     - `ValueError`: `r` or `g` is not positive (checked when its value is known, i.e.
         not under `jit`/`vmap`).
     """
-    theta0 = jnp.abs(_as_real(amplitude, "amplitude"))
-    r = _as_positive(r, "r")
-    g = _as_positive(g, "g")
+    theta0 = jnp.abs(as_real_promoting_ints(amplitude, "amplitude"))
+    r = positive_array(r, "r")
+    g = positive_array(g, "g")
     inside = theta0 < jnp.pi
     b = jnp.cos(jnp.where(inside, theta0, 0.0) / 2)
     T = small_amplitude_period(r=r, g=g) / _agm(jnp.ones_like(b), b)
     return jnp.where(inside, T, jnp.inf)
+
+
+def pendulum_period(amplitude, r=1.0, g=1.0):
+    """Alias of `period` (its older name, with `r` and `g` also positional)."""
+    return period(amplitude, r=r, g=g)

@@ -6,15 +6,22 @@ $m\ddot x = -V'(x) = F_x$.
 
 from collections.abc import Callable
 
+import jax
 import jax.numpy as jnp
 
-from .._misc import check_callable
+from .._checks import check_callable
 
 
-def lagrangian(potential: Callable, *, m=1.0):
+def harmonic(x):
+    r"""$V(x) = \frac12 x^2$, the default potential."""
+    return 0.5 * x**2
+
+
+def lagrangian(potential: Callable = harmonic, *, m=1.0):
     r"""$L(q, \dot q, t) = \frac12 m\dot x^2 - V(x)$ with $q = (x,)$.
 
-    **Arguments:** `potential`: `V(x) -> scalar` (a JAX function); `m`: the mass.
+    **Arguments:** `potential`: `V(x) -> scalar` (a JAX function; default `harmonic`);
+    `m`: the mass.
 
     **Returns:** `L(q, qdot, t)`.
 
@@ -28,6 +35,15 @@ def lagrangian(potential: Callable, *, m=1.0):
     return L
 
 
-def acceleration(x, force_x, *, m=1.0):
-    r"""Newton's $\ddot x = F_x / m$, with $F_x = -V'(x)$ given by hand as `force_x`."""
-    return jnp.asarray(force_x(x)) / m
+def acceleration(q, qdot=None, t=0.0, *, potential=harmonic, m=1.0, force_x=None):
+    r"""Newton's $\ddot x = F_x / m$, elementwise in `q`.
+
+    $F_x = -V'(x)$ is `force_x(x)` when given by hand, else the derivative of
+    `potential`. The older call `acceleration(x, force_x, m=m)` (a callable in the
+    place of `qdot`) is kept as an alias of `acceleration(x, force_x=force_x, m=m)`.
+    """
+    if callable(qdot):
+        force_x = qdot
+    if force_x is None:
+        return -jnp.vectorize(jax.grad(potential))(q) / m
+    return jnp.asarray(force_x(q)) / m

@@ -53,7 +53,7 @@ def lagrangian(*, m=1.0, R=1.0, Omega=1.0, g=1.0):
     )
 
 
-def acceleration(q, qdot, *, R=1.0, Omega=1.0, g=1.0):
+def acceleration(q, qdot, t=0.0, *, m=1.0, R=1.0, Omega=1.0, g=1.0):
     r"""The hand-derived equation of motion
     $\ddot\theta = \sin\theta\,(\Omega^2\cos\theta - g/R)$."""
     theta = q[0]

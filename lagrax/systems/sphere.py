@@ -1,4 +1,4 @@
-r"""The seed's particle on a sphere ($n = 2$), and held by an arm from a pole ($n = 1$).
+r"""A particle on a sphere ($n = 2$), and held by an arm from a pole ($n = 1$).
 
 A particle of mass $m$ on the sphere $|r| = R$ (centre at the origin, gravity $g$ along
 $-z$) needs two coordinates, the polar angle $\theta$ from the north pole $(0, 0, R)$
@@ -48,7 +48,7 @@ def lagrangian(*, m=1.0, R=1.0, g=0.0):
     )
 
 
-def acceleration(q, qdot, *, R=1.0, g=0.0):
+def acceleration(q, qdot, t=0.0, *, m=1.0, R=1.0, g=0.0):
     r"""The hand-derived equations of motion, $q = (\theta, \phi)$ (off the poles):
 
     $$\ddot\theta = \sin\theta\cos\theta\,\dot\phi^2 + \frac gR\sin\theta,\qquad
@@ -123,6 +123,6 @@ def arm_lagrangian(*, m=1.0, R=1.0, l=1.0, g=0.0):
     )
 
 
-def arm_acceleration(q, qdot, *, R=1.0, l=1.0, g=0.0):
+def arm_acceleration(q, qdot, t=0.0, *, m=1.0, R=1.0, l=1.0, g=0.0):
     r"""The hand-derived equation of motion on the arm's circle: $\ddot\phi = 0$."""
     return jnp.zeros_like(qdot)

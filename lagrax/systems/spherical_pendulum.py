@@ -39,7 +39,7 @@ def lagrangian(*, m=1.0, l=1.0, g=1.0):
     return L
 
 
-def acceleration(q, qdot, *, l=1.0, g=1.0):
+def acceleration(q, qdot, t=0.0, *, m=1.0, l=1.0, g=1.0):
     r"""The hand-derived equations of motion (off the axis, $\sin\theta \ne 0$):
 
     $$\ddot\theta = \sin\theta\cos\theta\,\dot\phi^2 - \frac gl\sin\theta,\qquad

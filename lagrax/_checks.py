@@ -1,0 +1,425 @@
+"""Argument checks, each written once, for every public entry point.
+
+Every check here runs at trace time on shapes and dtypes (always available), and on
+values only when they are concrete (an eager call), so that user errors surface as a
+`TypeError`/`ValueError` naming the argument instead of a tracer traceback. Each entry
+point calls them once, before any work: the hot path is never checked.
+"""
+
+import contextlib
+import linecache
+import math
+import os
+import warnings
+import weakref
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax._src import checkify as checkify_internals  # the per-primitive check rules
+from jax.experimental import checkify
+
+
+def is_concrete(*xs) -> bool:
+    """True when none of `xs` is a JAX tracer (so values may be inspected)."""
+    return not any(
+        isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs)
+    )
+
+
+def describe(x) -> str:
+    """A short description of what was received, for error messages."""
+    if isinstance(x, type):
+        return f"the class {x.__name__} (pass an instance, e.g. {x.__name__}())"
+    if callable(x) and not hasattr(x, "shape"):
+        return f"callable {getattr(x, '__name__', type(x).__name__)}"
+    shape = getattr(x, "shape", None)
+    dtype = getattr(x, "dtype", None)
+    if shape is not None:
+        return f"array of shape {tuple(shape)} and dtype {dtype}"
+    return f"{type(x).__name__} {x!r}"
+
+
+def check_callable(f, name: str, expected: str):
+    if not callable(f):
+        raise TypeError(f"`{name}` must be {expected}; got {describe(f)}.")
+
+
+def as_real_array(x, name: str):
+    """Converts `x` to a JAX array with a real floating dtype, or raises."""
+    if isinstance(x, str | bytes) or x is None:
+        raise TypeError(
+            f"`{name}` must be an array of real floating-point numbers; got "
+            f"{describe(x)}."
+        )
+    try:
+        dtype = jnp.result_type(x)
+    except TypeError as e:
+        raise TypeError(
+            f"`{name}` must be an array of real floating-point numbers; got "
+            f"{describe(x)}."
+        ) from e
+    if not jnp.issubdtype(dtype, jnp.floating):
+        if jnp.issubdtype(dtype, jnp.complexfloating):
+            what = "a complex dtype"
+        elif jnp.issubdtype(dtype, jnp.integer) or jnp.issubdtype(dtype, jnp.bool_):
+            what = f"the non-floating dtype {np.dtype(dtype).name}"
+        else:
+            what = f"dtype {dtype}"
+        raise TypeError(
+            f"`{name}` must have a real floating dtype (float32 or float64); got "
+            f"{what}. Write e.g. `jnp.array([1.0])` rather than `jnp.array([1])`."
+        )
+    return jnp.asarray(x)
+
+
+def as_real_promoting_ints(x, name: str):
+    """`as_real_array`, with Python ints and integer arrays promoted to the default
+    float (harmless for a length or an angle in whole radians, unlike coordinates,
+    which carry tangents). Strings, complex, bool: rejected."""
+    if not isinstance(x, str | bytes | bool) and x is not None:
+        try:
+            dtype = jnp.result_type(x)
+        except TypeError:
+            dtype = None
+        if dtype is not None and jnp.issubdtype(dtype, jnp.integer):
+            x = jnp.asarray(x, dtype=jnp.result_type(float))
+    return as_real_array(x, name)
+
+
+def positive_array(x, name: str):
+    """A real float array (ints promoted), positive wherever its values are known."""
+    x = as_real_promoting_ints(x, name)
+    # numpy, not jnp: inside a jit trace a jnp op on a concrete array is a tracer.
+    if is_concrete(x) and not np.all(np.asarray(x) > 0):
+        raise ValueError(f"`{name}` must be positive; got {np.asarray(x)!r}.")
+    return x
+
+
+def as_state(q, qdot, qname: str = "q", qdotname: str = "qdot"):
+    """Checks and converts a state `(q, qdot)`: 1-D, same length, real float."""
+    q = as_real_array(q, qname)
+    qdot = as_real_array(qdot, qdotname)
+    if q.ndim != 1:
+        raise ValueError(
+            f"`{qname}` must be a 1-D array of generalized coordinates (shape (n,)); "
+            f"got shape {q.shape}. For one degree of freedom write `jnp.array([x])`."
+        )
+    if qdot.ndim != 1:
+        raise ValueError(
+            f"`{qdotname}` must be a 1-D array of generalized velocities (shape "
+            f"(n,)); got shape {qdot.shape}."
+        )
+    if q.shape != qdot.shape:
+        raise ValueError(
+            f"`{qname}` and `{qdotname}` must have the same length; got "
+            f"{qname}.shape={q.shape} and {qdotname}.shape={qdot.shape}."
+        )
+    if q.shape[0] == 0:
+        raise ValueError(
+            f"`{qname}` must have at least one coordinate; got shape (0,)."
+        )
+    dtype = jnp.result_type(q, qdot)
+    return q.astype(dtype), qdot.astype(dtype)
+
+
+def as_time(t, name: str, dtype):
+    t = as_real_array(t, name) if not isinstance(t, int | float) else jnp.asarray(t)
+    if jnp.ndim(t) != 0:
+        raise ValueError(f"`{name}` must be a scalar time; got shape {jnp.shape(t)}.")
+    return jnp.asarray(t, dtype=dtype)
+
+
+def check_finite(x, name: str):
+    """Raises if `x` is concrete and has a NaN or infinite entry."""
+    # numpy, not jnp: inside a jit trace a jnp op on a concrete array is a tracer.
+    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+        raise ValueError(
+            f"`{name}` must be finite; got {np.asarray(x)!r} (an entry is not finite)."
+        )
+
+
+def positive_scalar(x, name: str, dtype, *, optional: bool = False):
+    """A positive finite scalar (a tolerance, a time limit) as an array of `dtype`.
+
+    `None` passes through when `optional`. Values are checked when concrete."""
+    if x is None and optional:
+        return None
+    x = as_real_array(x, name) if not isinstance(x, int | float) else jnp.asarray(x)
+    if jnp.ndim(x) != 0:
+        raise ValueError(f"`{name}` must be a scalar; got shape {jnp.shape(x)}.")
+    if is_concrete(x):
+        value = float(x)
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"`{name}` must be a positive finite number; got {value}.")
+    return jnp.asarray(x, dtype)
+
+
+def positive_int(x, name: str, *, minimum: int = 1) -> int:
+    """A Python (or numpy) int of at least `minimum`; never a bool."""
+    if isinstance(x, bool) or not isinstance(x, int | np.integer) or x < minimum:
+        what = "a positive int" if minimum == 1 else f"an int >= {minimum}"
+        raise ValueError(f"`{name}` must be {what}; got {x!r}.")
+    return int(x)
+
+
+def warn_if_below_eps(rtol, dtype, *, stacklevel: int = 2):
+    """Warns when a concrete `rtol` is finer than the machine epsilon of `dtype`.
+
+    `stacklevel` as seen from the caller: 2 points the warning at the caller's
+    caller (the user of a public entry point that calls this directly)."""
+    eps = float(jnp.finfo(dtype).eps)
+    if is_concrete(rtol) and float(rtol) < eps:
+        warnings.warn(
+            f"rtol={float(rtol):g} is below the machine epsilon of "
+            f"{jnp.dtype(dtype).name} ({eps:.2g}): the result cannot reach it. Enable "
+            "float64 (JAX's x64 mode, set by the caller) or loosen rtol.",
+            stacklevel=stacklevel + 1,
+        )
+
+
+def tolerances(rtol, atol, dtype, *, stacklevel: int = 2):
+    """`rtol` and `atol` as positive scalars of `dtype`, warning on rtol < eps."""
+    rtol = positive_scalar(rtol, "rtol", dtype)
+    atol = positive_scalar(atol, "atol", dtype)
+    warn_if_below_eps(rtol, dtype, stacklevel=stacklevel + 1)
+    return rtol, atol
+
+
+def check_instance(value, name: str, cls, expected: str | None = None):
+    """Raises unless `value` is an instance of `cls` (`None` is the caller's job)."""
+    if not isinstance(value, cls):
+        expected = expected or f"a `{cls.__module__.split('.')[0]}.{cls.__name__}`"
+        raise TypeError(f"`{name}` must be {expected}; got {describe(value)}.")
+
+
+def check_choice(value, name: str, choices):
+    """`value` if it is one of the strings `choices`, else raises."""
+    if not (isinstance(value, str) and value in choices):
+        raise ValueError(f"`{name}` must be one of {sorted(choices)}; got {value!r}.")
+    return value
+
+
+def check_devices(devices) -> tuple:
+    """A non-empty sequence of `jax.Device`s, as a tuple."""
+    expected = (
+        f"`devices` must be a non-empty sequence of jax devices; got {devices!r}."
+    )
+    if isinstance(devices, jax.Device | str) or not hasattr(devices, "__iter__"):
+        raise TypeError(expected)
+    devices = tuple(devices)
+    if len(devices) == 0 or not all(isinstance(d, jax.Device) for d in devices):
+        raise TypeError(expected)
+    return devices
+
+
+# ------------------------------------------------------------- user functions
+
+
+def call_user(f, name, signature, *args):
+    """`jax.eval_shape(f, *args)`, with a user error in `f` re-raised naming `f`, and
+    an out-of-range index in `f` reported (`check_indices`)."""
+    try:
+        out = jax.eval_shape(f, *args)
+    except (TypeError, ValueError) as e:
+        if str(e).startswith("`"):  # already a lagrax message naming its argument
+            raise
+        shapes = ", ".join(
+            f"{jnp.dtype(a.dtype).name}{list(a.shape)}" if hasattr(a, "shape") else "?"
+            for a in args
+        )
+        if isinstance(e, jax.errors.ConcretizationTypeError):
+            why = (
+                "Python control flow or float() on a value that depends on the "
+                "arguments (use jnp.where or jax.lax.cond)"
+            )
+        else:
+            why = type(e).__name__
+        raise (TypeError if isinstance(e, TypeError) else ValueError)(
+            f"`{name}` must be a JAX-traceable function {signature}; calling it "
+            f"with arguments {shapes} failed: {why}: {str(e).splitlines()[0]}"
+        ) from e
+    check_indices(f, name, signature.split(" ->")[0], *args)
+    return out
+
+
+# Functions already probed by `check_indices`, with the shapes and dtypes they were
+# probed at: an eager loop over `accelerations` probes its `L` once.
+_PROBED = weakref.WeakKeyDictionary()
+_LAGRAX = os.path.dirname(os.path.abspath(__file__))
+
+
+def _where(error) -> str:
+    """` at file:line (`source`)`: the innermost frame of a checkify `error` outside
+    JAX and lagrax's private modules (the user's indexing), or `""`."""
+    for frame in getattr(error.traceback_info, "frames", ()):
+        path = os.path.abspath(frame.file_name)
+        if (
+            "site-packages" in path
+            or f"{os.sep}jax{os.sep}" in path
+            or os.path.dirname(path) == _LAGRAX
+        ):
+            continue
+        line = linecache.getline(path, frame.line_num).strip()
+        source = f" (`{line}`)" if line else ""
+        return f" at {os.path.basename(path)}:{frame.line_num}{source}"
+    return ""
+
+
+@contextlib.contextmanager
+def _explicit_gather_modes_unchecked():
+    """checkify flags every gather whose index is out of range, whatever its mode; a
+    gather with an explicit `mode="clip"` or `mode="fill"` (`jnp.take(..., mode=...)`,
+    `x.at[i].get(mode=...)`) asks for that behaviour, so it is exempt while `f` is
+    traced here. Plain indexing (`q[i]`, `q[idx]`) gathers with `PROMISE_IN_BOUNDS`
+    or slices dynamically, and stays checked. The rule is restored on exit."""
+    rules = checkify_internals.error_checks
+    checked = rules[jax.lax.gather_p]
+
+    def rule(error, enabled_errors, operand, start_indices, **params):
+        if params["mode"] in (
+            jax.lax.GatherScatterMode.CLIP,
+            jax.lax.GatherScatterMode.FILL_OR_DROP,
+        ):
+            return error, jax.lax.gather_p.bind(operand, start_indices, **params)
+        return checked(error, enabled_errors, operand, start_indices, **params)
+
+    rules[jax.lax.gather_p] = rule
+    try:
+        yield
+    finally:
+        rules[jax.lax.gather_p] = checked
+
+
+def _concrete(x):
+    """`x` if concrete, else zeros of its shape and dtype (a value to probe with)."""
+    return x if is_concrete(x) else np.zeros(jnp.shape(x), jnp.result_type(x))
+
+
+def check_indices(f, name: str, signature: str, *args):
+    """Raises if `f(*args)` indexes an array out of range.
+
+    JAX clamps an out-of-range index silently (`q[1]` of a shape-`(1,)` `q` reads
+    `q[0]`), so a Lagrangian written for more coordinates than it is given would
+    return wrong numbers without an error. `f` is traced once under
+    `checkify.index_checks` and the jaxpr evaluated outside any enclosing `jit`/`vmap`
+    trace, at the arguments where they are concrete and at zeros of their shape where
+    they are traced (and likewise for traced values `f` closes over). Validation only:
+    nothing of this is staged into the computation. Other failures of `f` are left to
+    the other checks.
+    """
+    key = tuple((jnp.shape(a), jnp.result_type(a)) for a in args)
+    if key in _PROBED.get(f, ()):  # (jax.eval_shape, before, needs weakrefs too)
+        return
+    try:
+        checked = checkify.checkify(f, errors=checkify.index_checks)
+        with _explicit_gather_modes_unchecked():
+            jaxpr, shapes = jax.make_jaxpr(checked, return_shape=True)(*args)
+        with jax.core.eval_context():
+            flat = jax.core.eval_jaxpr(
+                jaxpr.jaxpr,
+                [_concrete(c) for c in jaxpr.consts],
+                *[_concrete(a) for a in jax.tree_util.tree_leaves(args)],
+            )
+            error, _ = jax.tree_util.tree_unflatten(
+                jax.tree_util.tree_structure(shapes), flat
+            )
+            error = error.get_exception()
+    except (TypeError, ValueError) as e:
+        if str(e).startswith("`"):  # a lagrax message from a nested check
+            raise
+        return  # a broken `f` is reported by the other checks
+    except Exception:
+        return
+    if error is not None:
+        shapes = ", ".join(f"{jnp.dtype(d).name}{list(s)}" for s, d in key)
+        message = str(error).strip().rstrip(".")
+        if "Tracer" in message:  # the index itself is not known here, its place is
+            shape = tuple(getattr(error, "operand_shape", ()))
+            message = f"an out-of-bounds index into an array of shape {shape}"
+        raise ValueError(
+            f"`{name}` must index its arguments within their shapes; {signature} "
+            f"with arguments {shapes} got {message}{_where(error)}. JAX would clamp "
+            "the index silently (q[1] of a q of shape (1,) reads q[0]) and give "
+            "wrong numbers: index only the coordinates the function is given."
+        )
+    _PROBED.setdefault(f, set()).add(key)
+
+
+def check_lagrangian(L, q, qdot, t, *, what: str = ""):
+    """`L` is callable and returns a real float scalar at `(q, qdot, t)`.
+
+    `what` qualifies "the Lagrangian" in the message (e.g. " of one degree of
+    freedom")."""
+    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
+    out = call_user(L, "L", "L(q, qdot, t) -> scalar", q, qdot, t)
+    shape = getattr(out, "shape", None)
+    dtype = getattr(out, "dtype", None)
+    if shape != () or dtype is None or not jnp.issubdtype(dtype, jnp.floating):
+        got = (
+            f"shape {shape} and dtype {dtype}"
+            if shape is not None
+            else f"a {type(out).__name__}"
+        )
+        raise TypeError(
+            f"`L` must return a real floating-point scalar (the Lagrangian{what}); "
+            f"L(q, qdot, t) with q of shape {q.shape} returned {got}. Sum or index the "
+            "terms into a scalar."
+        )
+
+
+def check_force(force, q, qdot, t):
+    check_callable(force, "force", "a function force(q, qdot, t) -> Q of shape (n,)")
+    out = call_user(force, "force", "force(q, qdot, t) -> Q", q, qdot, t)
+    if getattr(out, "shape", None) != q.shape or not jnp.issubdtype(
+        out.dtype, jnp.floating
+    ):
+        raise TypeError(
+            f"`force` must return a generalized force Q of shape {q.shape} (one entry "
+            f"per coordinate) and real floating dtype; force(q, qdot, t) returned "
+            f"{describe(out)}."
+        )
+
+
+def prepare(L, q, qdot, t, force=None, names=("q", "qdot", "t")):
+    """Checks a Lagrangian, a state and a time (and a force) once: `(q, qdot, t)` as
+    arrays of one float dtype."""
+    q, qdot = as_state(q, qdot, names[0], names[1])
+    t = as_time(t, names[2], q.dtype)
+    for x, name in zip((q, qdot, t), names):
+        check_finite(x, name)  # eager only: a NaN state is a user error, not M's
+    check_lagrangian(L, q, qdot, t)
+    if force is not None:
+        check_force(force, q, qdot, t)
+    return q, qdot, t
+
+
+def check_one_dof(L, dtype):
+    """`L` is a Lagrangian of one coordinate (`q` of shape `(1,)`) in `dtype`."""
+    z = jnp.zeros((1,), dtype)
+    check_lagrangian(
+        L, z, z, jnp.zeros((), dtype), what=" of one degree of freedom, q of shape (1,)"
+    )
+
+
+def check_solvable(qddot, M, ok, q, qdot, t, names=("q", "qdot", "t")):
+    """In an eager call, raises on a singular or indefinite mass matrix `M` (`ok`
+    False) or non-finite accelerations at `(q, qdot, t)`."""
+    if not is_concrete(q, qdot, t, qddot):
+        return
+    where = (
+        f"{names[0]}={np.asarray(q)}, {names[1]}={np.asarray(qdot)}, "
+        f"{names[2]}={float(t)}"
+    )
+    if not bool(ok):
+        raise ValueError(
+            "The mass matrix M = ∂²L/∂qdot² is singular or indefinite at "
+            f"{where}: M = {np.asarray(M).tolist()}. Lagrange's equations cannot "
+            "be solved for the accelerations there; if this is a coordinate "
+            "singularity, change coordinates (see `lagrax.reparametrize`)."
+        )
+    if not bool(jnp.all(jnp.isfinite(qddot))):
+        raise ValueError(
+            f"The accelerations are not finite at {where}: "
+            f"qddot = {np.asarray(qddot)}. Check L (and force) there."
+        )

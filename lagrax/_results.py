@@ -1,0 +1,184 @@
+r"""What became of a period: one status enumeration for `period`, `sweep_periods` and
+`quadrature_period`.
+
+`RESULTS` is an `equinox.Enumeration` (as `diffrax.RESULTS`): each member's value is
+its own message, and `RESULTS.<member>.error_if(x, pred)` raises that message under
+`jit` as well as eagerly. Arrays of statuses (`SweepResult.status`,
+`QuadratureResult.status`, the CLI's CSV/NPZ) hold the *int view*: the member's
+position in the enumeration. That mapping is fixed; new members only ever go at the
+end.
+
+| code | member | meaning |
+| --- | --- | --- |
+| 0 | `success` | the period is trustworthy to about the tolerances |
+| 1 | `not_oscillating` | released at an equilibrium, the coordinate ran away, or no turning point before `t_max` |
+| 2 | `max_steps` | `max_steps` reached before the next turning point |
+| 3 | `singular_mass` | mass matrix singular or indefinite at release or on the path |
+| 4 | `root_find_failed` | the turning point could not be located |
+| 5 | `energy_drift` | energy not conserved to `energy_tol`: the trajectory is garbage |
+| 6 | `solver_failed` | other ODE solver failure (collapsed step size, non-finite state) |
+| 7 | `nonfinite_input` | `q0` is NaN or infinite |
+| 8 | `unresolved` | (quadrature) too close to an unstable equilibrium for this precision |
+| 9 | `not_natural` | (quadrature) `L` is not $\frac12 m(q)\dot q^2 - V(q)$ |
+| 10 | `escapes` | (quadrature) no turning point ahead: the motion is unbounded |
+| 11 | `nonfinite_period` | (quadrature) the period came out non-finite |
+| 12 | `tolerance_not_met` | the per-lane error estimate exceeds what `rtol` promises |
+| 13 | `coordinate_singularity` | the path runs into a coordinate singularity |
+| 14 | `not_symmetric` | `method="quarter"` on a well that is not mirror-symmetric |
+
+`quadrature_period` reports a release at an equilibrium as 1, like the integrators;
+a motion with no turning point ahead gets its own code 10 there, because quadrature can
+tell it apart from other ways of not oscillating (the integrators report a runaway as
+1). Convert with `status_code(member)` (member to int) and `status_result(code)` (int
+to member); `STATUS_CODES` maps each code to its member's name and `status_message`
+gives its message.
+"""  # noqa: E501
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+
+class RESULTS(eqx.Enumeration):
+    success = "success"
+    not_oscillating = (
+        "does not oscillate: released at rest at an equilibrium (zero acceleration, "
+        "V'(q0) = 0 to within the rounding of q0), or the coordinate ran away (no "
+        "turning point ahead; in a solve |q - q0| > 1e6 max(|q0|, 1), which is also "
+        "what a path through a coordinate singularity can look like), or no turning "
+        "point before t_max"
+    )
+    max_steps = (
+        "max_steps reached before the next turning point: raise max_steps or loosen "
+        "the tolerances; thousands of steps for one swing usually mean a coordinate "
+        "singularity on the path (e.g. the cycloid's cusp in θ; reparametrize)"
+    )
+    singular_mass = (
+        "singular or indefinite mass matrix ∂²L/∂q̇² (at the release point, on the "
+        "path or where the solve stopped): a coordinate singularity; change "
+        "coordinates with lagrax.reparametrize"
+    )
+    root_find_failed = (
+        "turning point not located: the refinement to q̇ = 0 did not converge (zero "
+        "or non-finite acceleration at the turning point), or by quadrature the energy "
+        "balance has no reliable root (or a barrier lies inside the swing)"
+    )
+    energy_drift = (
+        "energy drift beyond energy_tol between release and turning point: the "
+        "trajectory is not trustworthy (tighten the tolerances, or a coordinate "
+        "singularity was crossed)"
+    )
+    solver_failed = (
+        "the ODE solver failed (step size collapsed or non-finite state) away from "
+        "any detectable singularity of the mass matrix"
+    )
+    nonfinite_input = "the release point q0 is not finite"
+    unresolved = (
+        "unresolved: too close to an unstable equilibrium for this precision (the far "
+        "turning point cannot be resolved; the period there is dominated by rounding)"
+    )
+    not_natural = (
+        "L is not natural: not of the form m(q) qdot^2 / 2 - V(q) (a term linear or "
+        "beyond quadratic in qdot, or explicit time dependence), which "
+        "quadrature_period needs"
+    )
+    escapes = (
+        "does not oscillate: no turning point ahead (the energy is above every "
+        "barrier in the direction of motion; the motion is unbounded)"
+    )
+    nonfinite_period = "the period came out non-finite"
+    tolerance_not_met = (
+        "the per-lane error estimate exceeds what rtol promises: the period is not "
+        "reported (near a separatrix, float64 rounding of the energy limits any method "
+        "that integrates through the bottom of the swing; for a mirror-symmetric well "
+        "use method='quarter', or loosen rtol)"
+    )
+    coordinate_singularity = (
+        "the path runs into a coordinate singularity (the mass ∂²L/∂q̇² vanishes on "
+        "it, e.g. Huygens' cycloid written in θ released near its cusp): change "
+        "coordinates with lagrax.reparametrize (for the cycloid, the u = cos(θ/2) form "
+        "in lagrax.systems.cycloid)"
+    )
+    not_symmetric = (
+        "not mirror-symmetric: method='quarter' computes T = 4 t(q0 -> q_m) for a "
+        "well symmetric about its point of maximum speed q_m, but the mirror image of "
+        "q0 is not a turning point here; use the default method='matched'"
+    )
+
+
+def status_code(result: RESULTS):
+    """The int view of a `RESULTS` member (an int32 array under `jit`/`vmap`)."""
+    return result._value
+
+
+def status_result(code) -> RESULTS:
+    """The `RESULTS` member of an int status code (or an array of them)."""
+    return eqx.tree_at(
+        lambda r: r._value, RESULTS.success, jnp.asarray(code, jnp.int32)
+    )
+
+
+#: The int view of `RESULTS`: `{code: member name}`, e.g. `STATUS_CODES[3]` is
+#: `"singular_mass"`.
+STATUS_CODES = {
+    int(status_code(item)): name for name, item in RESULTS._name_to_item.items()
+}
+
+SUCCESS = int(status_code(RESULTS.success))
+NOT_OSCILLATING = int(status_code(RESULTS.not_oscillating))
+MAX_STEPS = int(status_code(RESULTS.max_steps))
+SINGULAR_MASS = int(status_code(RESULTS.singular_mass))
+ROOT_FIND_FAILED = int(status_code(RESULTS.root_find_failed))
+ENERGY_DRIFT = int(status_code(RESULTS.energy_drift))
+SOLVER_FAILED = int(status_code(RESULTS.solver_failed))
+NONFINITE_INPUT = int(status_code(RESULTS.nonfinite_input))
+UNRESOLVED = int(status_code(RESULTS.unresolved))
+NOT_NATURAL = int(status_code(RESULTS.not_natural))
+ESCAPES = int(status_code(RESULTS.escapes))
+NONFINITE_PERIOD = int(status_code(RESULTS.nonfinite_period))
+TOLERANCE_NOT_MET = int(status_code(RESULTS.tolerance_not_met))
+COORDINATE_SINGULARITY = int(status_code(RESULTS.coordinate_singularity))
+NOT_SYMMETRIC = int(status_code(RESULTS.not_symmetric))
+
+
+def status_message(code) -> str:
+    r"""The meaning of a status code of `period`, `sweep_periods` or
+    `quadrature_period`, as one line of text.
+
+    The codes are the int view of `lagrax.RESULTS` (the table is in the docstring of
+    `lagrax.RESULTS`'s module and in `lagrax.STATUS_CODES`).
+
+    **Arguments:** `code`: an int (or integer scalar array).
+
+    **Returns:** the message, e.g. `"success"`.
+
+    **Raises:** `ValueError` for anything but one of the codes.
+    """
+    try:
+        key = int(code)
+        known = key == code and key in STATUS_CODES
+    except (TypeError, ValueError):
+        known = False
+    if not known:
+        raise ValueError(
+            f"`code` must be one of the integer status codes {sorted(STATUS_CODES)}; "
+            f"got {code!r}."
+        )
+    return RESULTS[status_result(np.int32(key))]
+
+
+def first_of(*pairs, default):
+    """A status from `(condition, code)` pairs: the first true condition wins
+    (`jnp.select`, written as pairs so that each cause sits next to its code)."""
+    conditions, codes = zip(*pairs)
+    return jnp.select(list(conditions), list(codes), default)
+
+
+def error_if(x, status):
+    """`x`, raising (under `jit` too) with the message of the first failed `status`.
+
+    `status`: int codes of any shape; raises when any is not `success`.
+    """
+    flat = jnp.ravel(jnp.asarray(status))
+    first = flat[jnp.argmax(flat != SUCCESS)]
+    return status_result(first).error_if(x, jnp.any(flat != SUCCESS))
