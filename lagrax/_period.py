@@ -322,9 +322,10 @@ def period(
     max_steps: int = 4096,
     t_max: RealScalarLike | None = None,
     energy_tol: RealScalarLike | None = None,
-    method: str = "half",
+    method: str = "matched",
     throw: bool = True,
-) -> Array:
+    error_estimate: bool = False,
+) -> Array | tuple[Array, Array]:
     r"""The period of a one-degree-of-freedom oscillation released from rest at `q0`.
 
     $$T = t(q_0 \to q_1) + t(q_1 \to q_0),$$
@@ -333,7 +334,17 @@ def period(
     (asymmetric potentials included: no centre of oscillation is assumed). `method`
     says how much of the orbit is integrated:
 
-    - `"half"` (default): $T = 2\,t(q_0 \to q_1)$. Exact when $L$ is even in $\dot q$
+    - `"matched"` (default): $T = 2\,(t(q_0 \to q_m) + t(q_1 \to q_m))$, two legs
+        each started at rest at its own turning point and ended at the point of
+        maximum speed $q_m$ ($\ddot q = 0$, found by event), the far turning point
+        $q_1$ solved from $L(q_1, 0) = L(q_0, 0)$ (the energy at rest) by bracketed
+        Newton. Right whenever `"half"` is (below), and nothing is integrated through
+        the bottom of the swing, where one rounding of $\dot q$ is an energy error
+        that the slow approach to a hump amplifies: 2.7e-13 on the pendulum at
+        $\pi - 10^{-3}$ where `"half"` loses 1.7e-9. What remains there is the
+        rounding of $L(q, 0)$ itself, which leaves $q_1$ undetermined within a band
+        that the error estimate accounts for.
+    - `"half"`: $T = 2\,t(q_0 \to q_1)$. Exact when $L$ is even in $\dot q$
         and has no explicit time dependence (every $L = \frac12 m(q)\dot q^2 - V(q)$,
         symmetric potential or not): the return leg is the outgoing one reversed.
     - `"full"`: through $q_1$ and back to $q_0$: any autonomous one-coordinate $L$;
@@ -344,7 +355,13 @@ def period(
         and the only well-conditioned choice near a separatrix: past the bottom, one
         rounding of $\dot q$ changes $T$ by $\sim 4\,\delta E/\delta^2$ for a release
         $\delta$ below a hump (pendulum: ~1e-10 relative at $\pi - 10^{-3}$ in float64,
-        whatever the tolerances), which `"quarter"` never integrates through.
+        whatever the tolerances), which `"quarter"` never integrates through. A lane
+        whose mirror image of $q_0$ is not a turning point gets status
+        `not_symmetric` instead of a wrong number.
+
+    With an explicit Runge–Kutta solver (every diffrax ERK) this runs on the same
+    kernel as `sweep_periods`, and gives the same numbers; other solvers go through
+    `diffrax.diffeqsolve` (there `"matched"` is not available and `"half"` is used).
 
     Plain JAX: works under `jit`, `vmap` and `grad` (with respect to `q0` and to any
     parameter `L` closes over). For many amplitudes at once use `sweep_periods`.
@@ -364,13 +381,16 @@ def period(
         $|q - q_0| > 10^6 \max(|q_0|, 1)$ stops the solve as not oscillating).
     - `energy_tol`: the largest accepted energy drift between release and turning point,
         relative to $|M\ddot q|\,|q_0|$ at release; default $\sqrt{\text{rtol}}$.
-    - `method`: `"half"`, `"full"` or `"quarter"`, see above.
+    - `method`: `"matched"`, `"half"`, `"full"` or `"quarter"`, see above.
     - `throw`: raise on failure (under `jit`/`vmap` an equinox runtime error); with
         `throw=False` a failure gives NaN.
+    - `error_estimate`: also return an estimate of $|T - T_\text{exact}|/T$ (see
+        `sweep_periods`; it costs a second solve at looser tolerances), and report a
+        lane whose estimate exceeds 100 rtol as `tolerance_not_met`.
 
     **Returns:**
 
-    $T$, a scalar.
+    $T$, a scalar; `(T, estimate)` with `error_estimate=True`.
 
     **Raises:**
 
@@ -400,17 +420,27 @@ def period(
     rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    out = _lane(
-        L,
-        q0,
-        rtol,
-        atol,
-        t_max,
-        energy_tol,
-        solver=solver,
-        max_steps=max_steps,
-        method=method,
-    )
+    from ._sweep import explicit_tableau, one_lane
+
+    tab = explicit_tableau(solver)
+    if tab is None:  # an implicit solver: diffeqsolve, and "half" for "matched"
+        out = _lane(
+            L,
+            q0,
+            rtol,
+            atol,
+            t_max,
+            energy_tol,
+            solver=solver,
+            max_steps=max_steps,
+            method="half" if method == "matched" else method,
+        )
+        estimate = jnp.full_like(out.period, jnp.nan)
+    else:
+        T, status, estimate = one_lane(
+            L, q0, tab, method, max_steps, rtol, atol, t_max, energy_tol, error_estimate
+        )
+        out = _Lane(T, status, jnp.zeros((1,), jnp.int32))
     if throw:
         if is_concrete(out.status):
             code = int(out.status)
@@ -427,7 +457,7 @@ def period(
                 )
         else:  # the status's own message, under jit too
             out = status_result(out.status).error_if(out, out.status != SUCCESS)
-    return out.period
+    return (out.period, estimate) if error_estimate else out.period
 
 
 # ---------------------------------------------------------------------------- sweep

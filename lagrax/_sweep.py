@@ -133,16 +133,20 @@ def _rk_step(tab, accel, s, x, v, a, h):
     return x1, v1, a1, ex, ev
 
 
+# What ends a leg, per lane: the next turning point (σq̇ from + to 0), the point of
+# maximum speed (σq̈ from + to 0), or a given position. Per lane rather than per
+# compiled loop, so that one compiled kernel serves every leg of every method (and
+# the tolerances of the error estimate's second solve): compile time is one loop.
+TURNING, MAX_SPEED, POSITION = 0, 1, 2
+
+
 class _Pass(eqx.Module):
     """Everything static about one pass of the kernel over the queue.
 
-    `event`: what ends a leg: `"v"` the next turning point (σq̇ from + to 0), `"a"` the
-    point of maximum speed (σq̈ from + to 0), `"x"` a given position (per lane).
-    `legs`: legs per lane (2: through the turning point and back).
+    `legs`: legs per lane (2: through the turning point and back, for "full").
     """
 
     tab: _Tableau
-    event: str = eqx.field(static=True)
     legs: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
@@ -169,7 +173,7 @@ def _lane_scales(L, q0, consts):
     return jax.vmap(one)(q0)
 
 
-def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
+def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
     """All amplitudes `q0s` (shape (n,)) through `cfg.width` refilling lanes.
 
     Returns per amplitude: raw outcome, event time (lane units), end state (x, v) and
@@ -185,7 +189,6 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
     ctrl = dfx.PIDController(rtol=0.0, atol=0.0)
     safety, fmin, fmax = ctrl.safety, ctrl.factormin, ctrl.factormax
     expo = 1.0 / tab.error_order
-    kind = cfg.event
 
     def accel_one(q0, Qs, tau, s, x, v):
         Vs, As = Qs / tau, Qs / tau**2
@@ -204,9 +207,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
         live = idx < n
         q0 = jnp.where(live, q0s[jnp.minimum(idx, n - 1)], 1.0)
         valid, Qs, tau, sigma = _lane_scales(L, q0, consts)
-        target = targets[jnp.minimum(idx, n - 1)]
+        at = jnp.minimum(idx, n - 1)
+        target, kind, rtol, atol = targets[at], kinds[at], rtols[at], atols[at]
         z = jnp.zeros_like(q0)
-        h0 = jnp.full_like(q0, 0.1 * jnp.minimum(rtol, atol) ** expo)
+        h0 = 0.1 * jnp.minimum(rtol, atol) ** expo
         return dict(
             idx=jnp.where(live, idx, n).astype(jnp.int32),
             done=~live | ~valid,
@@ -233,11 +237,14 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
             hsave=z,  # the controller's step size when the crossing was found
             tries=jnp.zeros_like(idx, jnp.int32),
             limit=jnp.where(live & valid, t_max / tau, 0.0),
-            xt=(target - q0) / Qs,  # the target of a "x" event, in the lane's units
+            xt=(target - q0) / Qs,  # the target of a POSITION event, lane units
+            kind=kind,
+            rtol=rtol,
+            atol=atol,
         )
 
     def g_of(lane, x, v, a):
-        return _event_value(kind, lane["sigma"], lane["xt"], x, v, a)
+        return _event_value(lane["kind"], lane["sigma"], lane["xt"], x, v, a)
 
     def body(carry):
         lane, out, nxt, it = carry
@@ -248,6 +255,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
             return accel_lanes(lane["q0"], lane["Qs"], lane["tau"], si, xi, vi)
 
         x1, v1, a1, ex, ev = _rk_step(tab, accel, s, x, v, a, h)
+        rtol, atol, kind = lane["rtol"], lane["atol"], lane["kind"]
         sx = atol + rtol * jnp.maximum(jnp.abs(x), jnp.abs(x1))
         sv = atol + rtol * jnp.maximum(jnp.abs(v), jnp.abs(v1))
         err = jnp.sqrt(0.5 * ((ex / sx) ** 2 + (ev / sv) ** 2))
@@ -278,29 +286,31 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
         glo = jnp.where(crossed, g_of(lane, x, v, a), glo)
         hi = jnp.where(crossed, h, hi)
         ghi = jnp.where(crossed, g1, ghi)
-        if kind == "a":
-            # Secant through the two latest trials, kept inside the bracket.
-            hp = jnp.where(crossed, 0.0, lane["hp"])
-            gp = jnp.where(crossed, glo, lane["gp"])
-            denom = g1 - gp
-            guess = h - g1 * (h - hp) / jnp.where(denom != 0, denom, 1.0)
-        else:
-            # Newton on σq̇(h) = 0 or σ(x_t - x(h)) = 0: the derivative is σq̈ or -σq̇
-            # at the trial's end, both at hand.
-            dg = _event_slope(kind, lane["sigma"], v1, a1)
-            guess = h - g1 / jnp.where(dg != 0, dg, 1.0)
+        # σq̈ = 0: secant through the two latest trials. σq̇ = 0 or σ(x_t - x) = 0:
+        # Newton, whose derivative (σq̈ or -σq̇ at the trial's end) is at hand.
+        # Both are a few flops; each lane takes its own. Kept inside the bracket.
+        hp = jnp.where(crossed, 0.0, lane["hp"])
+        gp = jnp.where(crossed, glo, lane["gp"])
+        denom = g1 - gp
+        secant = h - g1 * (h - hp) / jnp.where(denom != 0, denom, 1.0)
+        dg = _event_slope(kind, lane["sigma"], v1, a1)
+        newton = h - g1 / jnp.where(dg != 0, dg, 1.0)
+        guess = jnp.where(kind == MAX_SPEED, secant, newton)
         inside = (guess > lo) & (guess < hi) & jnp.isfinite(guess)
         guess = jnp.where(inside, guess, 0.5 * (lo + hi))
         conv_tol = 4 * eps * jnp.maximum(jnp.abs(s + h), 1.0)
         # The event value is known only to its rounding: for σq̇ that of q̇ + hΣb q̈
         # (measured: Newton otherwise stalls there on 5% of the pendulum's lanes); for
         # σq̈, that of q̈, whose scale is 1 in the lane's units.
-        if kind == "a":
-            g_scale = 1.0
-        elif kind == "v":
-            g_scale = jnp.abs(v) + 4 * jnp.abs(h * a1)
-        else:
-            g_scale = jnp.abs(x) + jnp.abs(lane["xt"]) + 4 * jnp.abs(h * v1)
+        g_scale = jnp.where(
+            kind == MAX_SPEED,
+            1.0,
+            jnp.where(
+                kind == TURNING,
+                jnp.abs(v) + 4 * jnp.abs(h * a1),
+                jnp.abs(x) + jnp.abs(lane["xt"]) + 4 * jnp.abs(h * v1),
+            ),
+        )
         g_noise = 8 * eps * g_scale
         converged = (
             (locating | crossed)
@@ -374,9 +384,8 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
             tries=tries,
             hsave=hsave,
         )
-        if kind == "a":
-            lane["hp"] = jnp.where(locating | crossed, h, lane["hp"])
-            lane["gp"] = jnp.where(locating | crossed, g1, lane["gp"])
+        lane["hp"] = jnp.where(locating | crossed, h, lane["hp"])
+        lane["gp"] = jnp.where(locating | crossed, g1, lane["gp"])
 
         # --- lanes that are done hand in their result and take the next amplitude
         def refill(args):
@@ -424,30 +433,26 @@ def _run_queue(L, cfg: _Pass, q0s, targets, rtol, atol, t_max, consts):
 
 def _event_value(kind, sigma, xt, x, v, a):
     """The event function g, positive during a leg, crossing to <= 0 at its end."""
-    if kind == "v":
-        return sigma * v
-    if kind == "a":
-        return sigma * a
-    return sigma * (xt - x)
+    return sigma * jnp.where(
+        kind == TURNING, v, jnp.where(kind == MAX_SPEED, a, xt - x)
+    )
 
 
 def _event_slope(kind, sigma, v, a):
-    """dg/ds along the motion where it needs no extra evaluation ("a": unused, 1)."""
-    if kind == "v":
-        return sigma * a
-    if kind == "x":
-        return -sigma * v
-    return jnp.ones_like(a)
+    """dg/ds along the motion where it needs no extra evaluation (MAX_SPEED: 1)."""
+    return jnp.where(
+        kind == TURNING, sigma * a, jnp.where(kind == POSITION, -sigma * v, 1.0)
+    )
 
 
-def _finish(L, consts, cfg, q0, targets, out, rtol, energy_tol):
+def _finish(L, consts, q0, targets, kinds, rtols, out, energy_tol):
     """Statuses, event times and end states from the loop's raw outcomes (vmapped)."""
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
     zero = jnp.zeros((), dtype)
     Lp = lambda q, qd, t: L(q, qd, t, *consts)
 
-    def one(q0, target, sigma, raw, s_e, x_e, v_e):
+    def one(q0, target, kind, rtol, sigma, raw, s_e, x_e, v_e):
         finite_q0 = jnp.isfinite(q0)
         q0 = jnp.where(finite_q0, q0, 1.0)
         a0, (M0, ok0) = _accelerations(Lp, q0[None], zero[None], zero)
@@ -497,51 +502,61 @@ def _finish(L, consts, cfg, q0, targets, out, rtol, energy_tol):
 
         a_e = accel(s_e, x_e, v_e)
         xt = (target - q0) / Qs
-        g = _event_value(cfg.event, sigma, xt, x_e, v_e, a_e)
-        if cfg.event == "a":
-            _, gdot = jax.jvp(accel, (s_e, x_e, v_e), (jnp.ones_like(s_e), v_e, a_e))
-            gdot = sigma * gdot
-        else:
-            gdot = _event_slope(cfg.event, sigma, v_e, a_e)
+        g = _event_value(kind, sigma, xt, x_e, v_e, a_e)
+        _, jerk = jax.jvp(accel, (s_e, x_e, v_e), (jnp.ones_like(s_e), v_e, a_e))
+        gdot = jnp.where(
+            kind == MAX_SPEED, sigma * jerk, _event_slope(kind, sigma, v_e, a_e)
+        )
         corr = -g / jnp.where(gdot != 0, gdot, 1.0)
         t_e = tau * (s_e + (corr - jax.lax.stop_gradient(corr)))
         return status.astype(jnp.int32), t_e, q_end, qdot_end
 
     return jax.vmap(one)(
-        q0, targets, out["sigma"], out["raw"], out["s"], out["x"], out["v"]
+        q0,
+        targets,
+        kinds,
+        rtols,
+        out["sigma"],
+        out["raw"],
+        out["s"],
+        out["x"],
+        out["v"],
     )
 
 
-def _device_pass(L, cfg, q0, targets, rtol, atol, t_max, energy_tol, consts):
+def _device_pass(L, cfg, lanes, t_max, energy_tol, consts):
+    q0, targets, kinds, rtols, atols = lanes
     t_lim = jnp.asarray(_NO_LIMIT if t_max is None else t_max, q0.dtype)
-    out, executed = _run_queue(L, cfg, q0, targets, rtol, atol, t_lim, consts)
-    status, t_e, q_e, qd_e = _finish(L, consts, cfg, q0, targets, out, rtol, energy_tol)
+    out, executed = _run_queue(L, cfg, q0, targets, kinds, rtols, atols, t_lim, consts)
+    status, t_e, q_e, qd_e = _finish(
+        L, consts, q0, targets, kinds, rtols, out, energy_tol
+    )
     return (status, t_e, q_e, qd_e, out["steps"]), executed
 
 
-def _pass(L, cfg, devices, q0, targets, consts, rtol, atol, t_max, energy_tol):
-    """One pass of the kernel over every amplitude and device; outputs replicated on
-    every device (and process), in input order: `(status, t_event, q_end, qdot_end,
-    steps), executed_lane_steps`."""
-    n = q0.shape[0]
+@eqx.filter_jit
+def _pass(L, cfg, devices, lanes, consts, t_max, energy_tol):
+    """One pass of the kernel over every lane and device, compiled once per static
+    configuration (`L`, `cfg`, `devices`, shapes). `lanes`: per-lane arrays `(q0,
+    targets, kinds, rtols, atols)`. Outputs replicated on every device (and process),
+    in input order: `(status, t_event, q_end, qdot_end, steps), executed`."""
+    n = lanes[0].shape[0]
     D = len(devices)
     per = -(-n // D)
-    if per * D > n:  # padded lanes repeat the last amplitude; they are dropped below
+    if per * D > n:  # padded lanes repeat the last one; they are dropped below
         pad = lambda x: jnp.concatenate([x, jnp.broadcast_to(x[-1], (per * D - n,))])
-        q0, targets = pad(q0), pad(targets)
-    # Device d takes amplitudes d, d + D, ...: neighbouring amplitudes cost about the
+        lanes = tuple(pad(x) for x in lanes)
+    # Device d takes lanes d, d + D, ...: neighbouring amplitudes cost about the
     # same, so interleaving balances the devices.
-    q0, targets = q0.reshape(per, D).T, targets.reshape(per, D).T
+    lanes = tuple(x.reshape(per, D).T for x in lanes)
     run = functools.partial(_device_pass, L, cfg)
     if D == 1:
-        outs, executed = run(q0[0], targets[0], rtol, atol, t_max, energy_tol, consts)
+        outs, executed = run(tuple(x[0] for x in lanes), t_max, energy_tol, consts)
         outs = tuple(x[None] for x in outs)
     else:
 
-        def local(q0, targets, rtol, atol, t_max, energy_tol, consts):
-            outs, executed = run(
-                q0[0], targets[0], rtol, atol, t_max, energy_tol, consts
-            )
+        def local(lanes, t_max, energy_tol, consts):
+            outs, executed = run(tuple(x[0] for x in lanes), t_max, energy_tol, consts)
             outs = tuple(jax.lax.all_gather(x, "lanes") for x in outs)
             return outs, jax.lax.psum(executed, "lanes")
 
@@ -549,10 +564,10 @@ def _pass(L, cfg, devices, q0, targets, consts, rtol, atol, t_max, energy_tol):
         outs, executed = jax.shard_map(
             local,
             mesh=mesh,
-            in_specs=(P("lanes"), P("lanes"), P(), P(), P(), P(), P()),
+            in_specs=(P("lanes"), P(), P(), P()),
             out_specs=P(),
             check_vma=False,
-        )(q0, targets, rtol, atol, t_max, energy_tol, consts)
+        )(lanes, t_max, energy_tol, consts)
     return tuple(x.T.reshape(-1)[:n] for x in outs), executed
 
 
@@ -562,6 +577,7 @@ _MAX_NEWTON = 60
 _MAX_EXPAND = 40
 
 
+@eqx.filter_jit
 def _far_turning_point(L, consts, q0, q_m):
     r"""The turning point beyond $q_m$ on the energy level of a release at rest at
     $q_0$: the root of $F(q) = L(q, 0) - L(q_0, 0)$ (for $L$ even in $\dot q$ and
@@ -656,51 +672,54 @@ class _Method(eqx.Module):
     max_steps: int = eqx.field(static=True)
     estimate: bool = eqx.field(static=True)
 
-    def pass_(self, event, legs=1):
-        return _Pass(self.tab, event, legs, self.width, self.max_steps)
+    @property
+    def pass_(self):
+        legs = 2 if self.method == "full" else 1
+        return _Pass(self.tab, legs, self.width, self.max_steps)
 
 
-def _run_method(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol, q1=None):
-    """One solve of every release point by `m.method`: periods (NaN on failure),
-    statuses, steps, executed lane-steps, and for "matched" the far turning points
-    with the width of their rounding band (else None)."""
-    args = (consts, rtol, atol, t_max, energy_tol)
+def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shift):
+    """One solve of every lane by `m.method` (per-lane tolerances): periods (NaN on
+    failure), statuses, steps, executed lane-steps, and the far side of each swing.
+    `shift`: for "matched", how many rounding bands to move each far turning point."""
     zeros = jnp.zeros_like(q0)
+    kinds = lambda kind: jnp.full(q0.shape, kind, jnp.int32)
+    run = lambda q0, targets, kind: _pass(
+        L,
+        m.pass_,
+        devices,
+        (q0, targets, kinds(kind), rtols, atols),
+        consts,
+        t_max,
+        energy_tol,
+    )
     if m.method != "matched":
-        event, legs, factor = {
-            "half": ("v", 1, 2.0),
-            "quarter": ("a", 1, 4.0),
-            "full": ("v", 2, 1.0),
+        kind, factor = {
+            "half": (TURNING, 2.0),
+            "quarter": (MAX_SPEED, 4.0),
+            "full": (TURNING, 1.0),
         }[m.method]
-        (status, t_e, q_e, _, steps), executed = _pass(
-            L, m.pass_(event, legs), devices, q0, zeros, *args
-        )
+        (status, t_e, q_e, _, steps), executed = run(q0, zeros, kind)
         # The far side of the swing, for `_blame_coordinates`: where the solve
         # stopped, or past the point of maximum speed by as much again.
-        q_far = 2 * q_e - q0 if event == "a" else q_e
-        if event == "a":
+        q_far = 2 * q_e - q0 if kind == MAX_SPEED else q_e
+        if kind == MAX_SPEED:
             # T = 4 t(q0 -> q_m) holds for a well mirror-symmetric about q_m: the
             # mirror image of q0 must be a turning point (to rtol across the swing).
             symmetric = _is_turning_point(
-                L, consts, q0, q_far, rtol * jnp.abs(q_e - q0)
+                L, consts, q0, q_far, rtols * jnp.abs(q_e - q0)
             )
             status = jnp.where((status == SUCCESS) & ~symmetric, NOT_SYMMETRIC, status)
         T = jnp.where(status == SUCCESS, factor * t_e, jnp.nan)
-        return T, status, steps, executed, None, q_far
+        return T, status, steps, executed, q_far
     # Two quarter legs, each from rest at its own turning point, meeting at the
     # point of maximum speed: nothing is integrated through the bottom of the swing.
-    (st_a, t_a, q_m, qd_a, steps_a), ex_a = _pass(
-        L, m.pass_("a"), devices, q0, zeros, *args
-    )
-    if q1 is None:
-        q1, found, band = _far_turning_point(L, consts, q0, q_m)
-    else:
-        q1, found, band = q1
+    (st_a, t_a, q_m, qd_a, steps_a), ex_a = run(q0, zeros, MAX_SPEED)
+    q1, found, band = _far_turning_point(L, consts, q0, q_m)
+    q1 = q1 + shift * band
     go = found & (st_a == SUCCESS)
-    (st_b, t_b, _, qd_b, steps_b), ex_b = _pass(
-        L, m.pass_("x"), devices, jnp.where(go, q1, jnp.nan), q_m, *args
-    )
-    tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
+    (st_b, t_b, _, qd_b, steps_b), ex_b = run(jnp.where(go, q1, jnp.nan), q_m, POSITION)
+    tol = jnp.sqrt(rtols) if energy_tol is None else energy_tol
     match = jnp.abs(jnp.abs(qd_a) - jnp.abs(qd_b)) <= tol * jnp.abs(qd_a)
     status = jnp.select(
         [st_a != SUCCESS, ~found, st_b != SUCCESS, ~match],
@@ -715,7 +734,7 @@ def _run_method(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol, q1=Non
     q_far = jnp.where(found, q1, 2 * q_m - q0)
     T = jnp.where(status == SUCCESS, 2 * (t_a + t_b), jnp.nan)
     steps = steps_a + jnp.where(go, steps_b, 0)
-    return T, status, steps, ex_a + ex_b, (q1, found, band), q_far
+    return T, status, steps, ex_a + ex_b, q_far
 
 
 # A failed lane whose mass ∂²L/∂q̇² falls below this fraction of its largest value
@@ -725,6 +744,7 @@ _VANISHING_MASS = 1e-6
 _MASS_SAMPLES = 33
 
 
+@eqx.filter_jit
 def _blame_coordinates(L, consts, q0, q_far, status):
     """`coordinate_singularity` for failed lanes whose mass vanishes on the swing."""
     dtype = q0.dtype
@@ -766,29 +786,28 @@ PROMISE = 100.0
 
 
 def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
-    """Periods, statuses, steps, executed lane-steps and error estimates."""
-    T, status, steps, executed, far, q_far = _run_method(
-        L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
+    """Periods, statuses, steps, executed lane-steps and error estimates. The
+    estimate's second solve runs in the same queue as the first (the second half of
+    the lanes, at looser tolerances): one compiled kernel, balanced work."""
+    n = q0.shape[0]
+    full = lambda x, k: jnp.full((n,), k * x, q0.dtype)
+    if m.estimate:
+        lanes = jnp.concatenate([q0, q0])
+        rtols = jnp.concatenate([full(rtol, 1.0), full(rtol, _LOOSER)])
+        atols = jnp.concatenate([full(atol, 1.0), full(atol, _LOOSER)])
+        shift = jnp.concatenate([jnp.zeros(n, q0.dtype), jnp.ones(n, q0.dtype)])
+    else:
+        lanes, rtols, atols, shift = q0, full(rtol, 1.0), full(atol, 1.0), 0.0
+    T, status, steps, executed, q_far = _run_method(
+        L, m, devices, lanes, consts, rtols, atols, t_max, energy_tol, shift
     )
     if not m.estimate:
         status = _blame_coordinates(L, consts, q0, q_far, status)
         T = jnp.where(status == SUCCESS, T, jnp.nan)
         return T, status, steps, executed, jnp.full_like(T, jnp.nan)
-    if far is not None:
-        q1, found, band = far
-        far = (q1 + band, found, band)
-    T2, status2, steps2, executed2, _, _ = _run_method(
-        L,
-        m,
-        devices,
-        q0,
-        consts,
-        _LOOSER * rtol,
-        _LOOSER * atol,
-        t_max,
-        energy_tol,
-        q1=far,
-    )
+    T, T2 = T[:n], T[n:]
+    status, status2 = status[:n], status[n:]
+    steps = steps[:n] + steps[n:]
     eps = jnp.finfo(q0.dtype).eps
     est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
     est = jax.lax.stop_gradient(jnp.where(status == SUCCESS, est, jnp.nan))
@@ -796,11 +815,12 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     est = jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)
     unmet = (status == SUCCESS) & ~(est <= PROMISE * rtol)
     status = jnp.where(unmet, TOLERANCE_NOT_MET, status)
-    status = _blame_coordinates(L, consts, q0, q_far, status)
+    status = _blame_coordinates(L, consts, q0, q_far[:n], status)
     T = jnp.where(status == SUCCESS, T, jnp.nan)
-    return T, status, steps + steps2, executed + executed2, est
+    return T, status, steps, executed, est
 
 
+@eqx.filter_jit
 def _is_turning_point(L, consts, q0, q, tol):
     """Whether q is, within `tol` in q plus rounding, on the energy level of a release
     at rest at q0: |L(q, 0) - L(q0, 0)| <= rounding + tol |∂L/∂q(q, 0)|."""
@@ -879,11 +899,6 @@ def _zeros_if_symbolic(t, like):
     return t
 
 
-@eqx.filter_jit
-def _sweep_compiled(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
-    return _periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
-
-
 def closure_converted(L: Callable, dtype):
     """`L` with the tracers it closes over hoisted into explicit arguments.
 
@@ -896,6 +911,18 @@ def closure_converted(L: Callable, dtype):
     if not consts:
         return L, []
     return converted, list(consts)
+
+
+def one_lane(L, q0, tab, method, max_steps, rtol, atol, t_max, energy_tol, estimate):
+    """`period` on the kernel: one release point (a scalar), one lane, the default
+    device. Returns `(T, status, error_estimate)` as scalars."""
+    cfg = _Method(tab, method, 1, max_steps, bool(estimate))
+    L_c, consts = closure_converted(L, q0.dtype)
+    device = (jax.devices()[0],)
+    T, status, _, _, est = _periods_diff(
+        L_c, cfg, device, q0[None], consts, rtol, atol, t_max, energy_tol
+    )
+    return T[0], status[0], est[0]
 
 
 def sweep_periods(
@@ -1007,7 +1034,7 @@ def sweep_periods(
     n = q0.shape[0]
 
     def run(q):
-        return _sweep_compiled(
+        return _periods_diff(
             L_c, cfg, devices, q, consts, rtol, atol, t_max, energy_tol
         )
 
