@@ -497,25 +497,23 @@ class _Store:
         if h in self.carry and value is not None:
             F, R = self.carry[h]
             F = lax.dynamic_update_index_in_dim(F, value, self.k, 0)
-            R = lax.dynamic_update_index_in_dim(R, value, self.K - self.k, 0)
             self.carry[h] = (F, R)
 
     def conv(self, a, b):
         r"""$\sum_{j=0}^{k} a_j b_{k-j}$ over the coefficients stored so far."""
         Fa, _ = self._arrays(a)
-        _, Rb = self._arrays(b)
-        window = lax.dynamic_slice_in_dim(Rb, self.K - self.k, self.K + 1, 0)
-        return jnp.sum(Fa * window, axis=0)
+        return jnp.sum(Fa * self.window(b), axis=0)
 
     def window(self, b):
-        _, Rb = self._arrays(b)
+        Fb, _ = self._arrays(b)
+        pad = jnp.zeros((self.K,) + Fb.shape[1:], Fb.dtype)
+        Rb = jnp.concatenate([Fb[::-1], pad])
         return lax.dynamic_slice_in_dim(Rb, self.K - self.k, self.K + 1, 0)
 
 
 def _initial(K, value0):
     F = jnp.zeros((K + 1,) + value0.shape, value0.dtype).at[0].set(value0)
-    R = jnp.zeros((2 * K + 1,) + value0.shape, value0.dtype).at[K].set(value0)
-    return F, R
+    return F, None
 
 
 # --- recurrences: the k-th coefficient (k >= 1, traced) of each series node ---------
@@ -807,8 +805,7 @@ def _coefficients(prog, K, s, x, v, leaves):
     as_ = jnp.zeros((K, W), dtype).at[0].set(a0)
     if K == 1:
         return xs, vs, as_
-    pad = jnp.zeros((K, W), dtype)
-    rev = lambda F: jnp.concatenate([F[::-1], pad])
+    rev = lambda F: None
     ss = jnp.zeros((K + 1, W), dtype).at[0].set(s).at[1].set(1.0)
     # Order-0 coefficient of every handle a recurrence may store; the recurrences
     # add their auxiliary series here.
