@@ -114,6 +114,11 @@ _LINEAR = frozenset(
 # Primitives bilinear in their two operands: linear if one is constant.
 _BILINEAR = frozenset({"mul", "dot_general"})
 
+# Elementwise primitives whose operands may be rank-0 beside arrays.
+_ELEMENTWISE = frozenset(
+    {"add", "add_any", "sub", "mul", "div", "max", "min", "pow", "rem", "clamp"}
+)
+
 # Call-like primitives whose (primal) body is inlined.
 _CALLS = {
     "pjit": "jaxpr",
@@ -289,6 +294,10 @@ class _Program:
                 f"(in an equation of the acceleration that depends on the state). "
                 f"Supported: {', '.join(_supported())}."
             )
+        if name in _ELEMENTWISE:
+            # Jaxprs mix rank-0 operands into elementwise products (`mul u:f64[2]
+            # w:f64[]`); the recurrences want equal shapes.
+            args = [self._broadcast(a, avals[0]) for a in args]
         if name in ("sin", "cos"):
             s, c = self._add("sincos", None, args, {}, avals * 2, True)
             return [s if name == "sin" else c]
@@ -320,6 +329,17 @@ class _Program:
                 (e,) = self._add("mul", lax.mul_p, [w, lu], {}, avals, True)
                 return self._add("exp", lax.exp_p, [e], {}, avals, True)
         return self._add(name, prim, args, params, avals, True)
+
+    def _broadcast(self, a, aval):
+        if self.avals[a].shape == aval.shape:
+            return a
+        if self.avals[a].shape != ():  # pragma: no cover - jaxprs broadcast only scalars
+            raise NotImplementedError("Taylor coefficients: implicit broadcasting")
+        out = jax.core.ShapedArray(aval.shape, self.avals[a].dtype)
+        params = dict(shape=aval.shape, broadcast_dimensions=(), sharding=None)
+        prim = lax.broadcast_in_dim_p
+        series = a in self.series
+        return self._add("broadcast_in_dim", prim, [a], params, [out], series)[0]
 
     def _integer_pow(self, u, n, aval):
         if n == 0:
@@ -625,7 +645,7 @@ def _sqrt(st, node):
     r"""$c_k = \bigl(u_k - \sum_{j=1}^{k-1} c_j c_{k-j}\bigr) / (2 c_0)$."""
     (u,) = node.ins
     (c,) = node.outs
-    inv = _inverse0(st, node, lambda: 0.5 / st.zero.lanes(c))
+    inv = _inverse0(st, node, lambda: 2.0 * st.zero.lanes(c))
     return [(st.get(u) - st.conv(c, c)) * inv]
 
 
@@ -635,7 +655,7 @@ def _power(st, node, a):
     - \sum_{j=1}^k u_j c_{k-j}\Bigr)$."""
     u = node.ins[0]
     (c,) = node.outs
-    inv = _inverse0(st, node, lambda: 1.0 / st.zero.lanes(u))
+    inv = _inverse0(st, node, lambda: st.zero.lanes(u))
     ju = _weighted(st, node, u)
     total = st.conv(ju, c) * ((a + 1.0) / st.kf) - st.conv(u, c)
     return [total * inv]
@@ -655,9 +675,9 @@ def _div(st, node):
     series = st.zero.prog.series
     uk = st.get(u) if u in series else None
     if w not in series:
-        inv = _inverse0(st, node, lambda: 1.0 / st.zero.const(w))
+        inv = _inverse0(st, node, lambda: st.zero.const(w))
         return [_times(uk, inv)]
-    inv = _inverse0(st, node, lambda: 1.0 / st.zero.lanes(w))
+    inv = _inverse0(st, node, lambda: st.zero.lanes(w))
     return [_add(uk, -st.conv(w, node.outs[0])) * inv]
 
 
@@ -697,7 +717,7 @@ def _atan(st, node):
     u0 = lambda: st.zero.lanes(u)
     w = st.aux((c, "w"), lambda: 1.0 + u0() * u0())
     st.put(w, st.conv(u, u))
-    inv = _inverse0(st, node, lambda: 1.0 / (1.0 + u0() * u0()))
+    inv = _inverse0(st, node, lambda: 1.0 + u0() * u0())
     jc = st.aux((c, "jc"), lambda: jnp.zeros_like(u0()))
     ck = (st.get(u) - st.conv(w, jc) / st.kf) * inv
     st.put(jc, ck * st.kf)
