@@ -295,8 +295,8 @@ class _Program:
                 f"Supported: {', '.join(_supported())}."
             )
         if name in _ELEMENTWISE:
-            # Jaxprs mix rank-0 operands into elementwise products (`mul u:f64[2]
-            # w:f64[]`); the recurrences want equal shapes.
+            # Jaxprs broadcast implicitly in elementwise ops (`mul u:f64[2] w:f64[]`,
+            # `mul a:f64[2,1,2] b:f64[1,1,2]`); the recurrences want equal shapes.
             args = [self._broadcast(a, avals[0]) for a in args]
         if name in ("sin", "cos"):
             s, c = self._add("sincos", None, args, {}, avals * 2, True)
@@ -331,12 +331,12 @@ class _Program:
         return self._add(name, prim, args, params, avals, True)
 
     def _broadcast(self, a, aval):
-        if self.avals[a].shape == aval.shape:
+        shape = self.avals[a].shape
+        if shape == aval.shape:
             return a
-        if self.avals[a].shape != ():  # pragma: no cover - jaxprs broadcast only scalars
-            raise NotImplementedError("Taylor coefficients: implicit broadcasting")
         out = jax.core.ShapedArray(aval.shape, self.avals[a].dtype)
-        params = dict(shape=aval.shape, broadcast_dimensions=(), sharding=None)
+        dims = tuple(range(len(aval.shape) - len(shape), len(aval.shape)))
+        params = dict(shape=aval.shape, broadcast_dimensions=dims, sharding=None)
         prim = lax.broadcast_in_dim_p
         series = a in self.series
         return self._add("broadcast_in_dim", prim, [a], params, [out], series)[0]

@@ -117,13 +117,13 @@ def test_elementary_functions():
     """The nonlinear recurrences one by one, against `jet`, with a pytree of per-lane
     parameters."""
 
-    def accel(s, x, v, p):
+    def accel(s, x, v, p, tan=jnp.tan):
         c, d = p["c"], p["d"]
         u = c + x
         return (
             jnp.exp(0.3 * u) * jnp.log(1.5 + u)
             + jnp.sqrt(2.0 + u) * v
-            + jnp.tan(0.4 * u)
+            + tan(0.4 * u)
             - jnp.tanh(v) / (1.2 + u * u)
             + (1.3 + u) ** 1.7
             + (1.3 + u) ** d
@@ -143,7 +143,9 @@ def test_elementary_functions():
     p = {"c": jnp.array([0.1, 0.6, -0.3, 0.35]), "d": jnp.array([0.5, -1.5, 2.0, 3.5])}
     s = jnp.array([0.0, 0.3, -0.2, 1.0])
     v = jnp.array([0.2, -0.1, 0.05, 0.3])
-    _check(accel, s, jnp.zeros(W), v, p, rtol=1e-12)
+    # `jet` has no rule for tan.
+    reference = lambda s, x, v, p: accel(s, x, v, p, lambda u: jnp.sin(u) / jnp.cos(u))
+    _check(accel, s, jnp.zeros(W), v, p, rtol=1e-12, reference=reference)
 
 
 def test_atan():
