@@ -33,7 +33,8 @@ Design, measured (`benchmarks/taylor_coefficients.py`):
     arrays; each Cauchy sum is a full-length product with a reversed, shifted copy
     (`_Store`), so half its multiply-adds hit zeros. Unrolling the orders in Python
     instead (exactly triangular sums, one `(W,)` array per coefficient) compiled in
-    5-8 s at order 20 against ~0.3 s, and did not run faster.
+    5-8 s at order 20 against ~0.6 s, and did not run faster (both measured on a
+    loaded 2-core machine).
 """
 
 from collections.abc import Callable
@@ -467,17 +468,16 @@ class _Store:
     r"""Coefficients of the series inside one iteration $k$ of the loop over orders.
 
     Every stored series (a variable or an auxiliary series of a recurrence, e.g.
-    $j u_j$) is kept twice in the loop carry: forwards, `F[j]` $= u_j$, shape
-    `(K + 1, W, ...)`, and reversed with $K$ zeros after it, `R[K - j]` $= u_j$,
-    shape `(2K + 1, W, ...)`. Then the Cauchy sum at order $k$ is one fixed-shape
-    product with a dynamic slice,
+    $j u_j$) is a loop-carried array `F[j]` $= u_j$ of shape `(K + 1, W, ...)`, zero
+    above the orders computed so far. The Cauchy sum at order $k$ is one fixed-shape
+    product with a window of the reversed, zero-padded copy $R$ (`R[K - j]` $= u_j$),
 
-    $$\sum_{j=0}^{K} F_a[j]\, R_b[K - k + j] = \sum_{j=0}^{k} a_j b_{k-j},$$
+    $$\sum_{j=0}^{K} F_a[j]\, R_b[K - k + j] = \sum_{j=0}^{k} a_j b_{k-j}.$$
 
-    since $R_b$ is zero past its end and $F_a$ is zero above the orders computed so
-    far. Each recurrence below relies on the slot of its own output at order $k$ still
-    being zero when it forms its sums, which drops the $j = 0$ (or $j = k$) term that
-    holds the unknown.
+    ($R$ is rebuilt per sum: carrying it too made XLA copy every carried array twice
+    per order.) Each recurrence below relies on the slot of its own output at order $k$
+    still being zero when it forms its sums, which drops the $j = 0$ (or $j = k$) term
+    that holds the unknown.
     """
 
     def __init__(self, zero, K, k, carry, lanes, record):
