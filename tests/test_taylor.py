@@ -71,6 +71,7 @@ def test_pendulum():
     _check(_lagrange_accel(L), *lanes, reference=hand)
 
 
+@pytest.mark.slow  # jet at order 20 compiles for minutes on 2 cores
 def test_cycloid():
     L = cycloid.lagrangian(R=1.3, g=0.7)
     hand = lambda s, x, v, q0: cycloid.acceleration(q0 + x, v, R=1.3, g=0.7)
@@ -78,6 +79,7 @@ def test_cycloid():
     _check(_lagrange_accel(L), *lanes, reference=hand)
 
 
+@pytest.mark.slow  # jet at order 20 compiles for minutes on 2 cores
 def test_asymmetric_well():
     # x**3 at x = 0 in the first lane: powers are products, no division by x_0.
     L = asymmetric_well.lagrangian(k=1.0, a=0.8)
@@ -86,6 +88,7 @@ def test_asymmetric_well():
     _check(_lagrange_accel(L), *lanes, reference=hand)
 
 
+@pytest.mark.slow  # jet at order 20 compiles for minutes on 2 cores
 def test_bead_on_polynomial_track():
     y = lambda q: 0.5 * q**2 - 0.1 * q**3 + 0.05 * q**4
     dy = jax.grad(y)
@@ -102,6 +105,7 @@ def test_bead_on_polynomial_track():
     _check(_lagrange_accel(L), *lanes, reference=hand)
 
 
+@pytest.mark.slow  # jet at order 20 compiles for minutes on 2 cores
 def test_driven_pendulum_explicit_time():
     L = driven_pendulum.lagrangian(l=1.2, ax=0.2, ay=0.3, omega=2.5)
     s, x, v, q0 = _lanes([0.3, 1.0, 2.0, -1.0], [0.0, 0.5, -0.2, 0.1])
@@ -113,6 +117,7 @@ def test_driven_pendulum_explicit_time():
     _check(_lagrange_accel(L), s, x, v, q0, reference=hand)
 
 
+@pytest.mark.slow  # jet at order 20 compiles for minutes on 2 cores
 def test_elementary_functions():
     """The nonlinear recurrences one by one, against `jet`, with a pytree of per-lane
     parameters."""
@@ -148,6 +153,7 @@ def test_elementary_functions():
     _check(accel, s, jnp.zeros(W), v, p, rtol=1e-12, reference=reference)
 
 
+@pytest.mark.slow  # jet at order 20 compiles for minutes on 2 cores
 def test_atan():
     def accel(s, x, v, c):
         return jnp.arctan(c + x) * v
