@@ -123,7 +123,7 @@ def test_results_independent_of_chunk_size_and_order(mixed_sweep):
 
 def test_period_failures_raise_with_the_status(mixed_sweep):
     with pytest.raises(RuntimeError, match="status 2 \\(max_steps\\)") as info:
-        lagrax.period(L, np.pi - 1e-6, **OPTIONS)
+        lagrax.period(L, np.pi - 1e-9, **OPTIONS)
     assert not isinstance(info.value, ValueError)  # not the input's fault
     with pytest.raises(ValueError, match="`q0`.*singular_mass"):
         lagrax.period(L, 10.0, **OPTIONS)
@@ -250,9 +250,7 @@ def test_interrupted_csv_write_leaves_no_partial_file(capsys, monkeypatch, tmp_p
                 raise KeyboardInterrupt
             return super().__getitem__(key)
 
-    monkeypatch.setattr(
-        lagrax._period, "STATUS_CODES", Interrupting(lagrax._period.STATUS_CODES)
-    )
+    monkeypatch.setattr(lagrax, "STATUS_CODES", Interrupting(lagrax.STATUS_CODES))
     rc, _, _ = _run(capsys, *ARGV, "--rows", "0", "--out", str(out))
     assert rc == 130 and Interrupting.reads == 10
     assert not out.exists()
@@ -261,7 +259,7 @@ def test_interrupted_csv_write_leaves_no_partial_file(capsys, monkeypatch, tmp_p
 
 _SLOW_SWEEP = """
 import sys, time
-import lagrax._period as p
+import lagrax as p
 real = p.sweep_periods
 def slow(*args, **kwargs):
     time.sleep(0.5)  # time for the test to kill us between two blocks
@@ -315,7 +313,6 @@ def test_failing_amplitudes_counted_and_exit_1(
     out = tmp_path / "res.npz"
     loud = [a for a in ARGV if a != "--quiet"]
     rc, stdout, err = _run(capsys, *loud, "--out", str(out))
-    assert "pendulum: 100/100 amplitudes" in err  # progress on stderr
     got = _load(out)
     failed = got["status"] != 0
     assert rc == 1
