@@ -7,6 +7,10 @@ from ._mechanics import (
     mass_matrix as mass_matrix,
     momenta as momenta,
 )
+from ._gauss_legendre import (
+    GaussLegendre4 as GaussLegendre4,
+    GaussLegendre6 as GaussLegendre6,
+)
 from ._particles import (
     check_embedding as check_embedding,
     degrees_of_freedom as degrees_of_freedom,
