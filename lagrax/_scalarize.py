@@ -103,11 +103,69 @@ def _objects(x):
     return _filled(shape, (x[idx] for idx in np.ndindex(shape)))
 
 
+def _known(x) -> bool:
+    """A value known while tracing (a literal, an iota, a folded constant)."""
+    return isinstance(x, np.ndarray | np.generic)
+
+
+def _is(x, value) -> bool:
+    return _known(x) and bool(np.all(x == value))
+
+
+def _bind(primitive, args, params):
+    r"""`primitive.bind(*args, **params)` on scalars, folding known values.
+
+    The tangent directions of the forward-over-reverse pass are mostly zeros; JAX
+    cannot drop `x * 0` (it is NaN for infinite `x`) and XLA may not either, so
+    without folding they cost as much as the useful arithmetic (2x for a
+    one-pendulum chain). Here a known zero or one is folded as JAX's own symbolic
+    zero tangents would be: `x * 0 = 0`, `x + 0 = x`, `x * 1 = x`, `0 / x = 0`.
+    """
+    if all(_known(a) for a in args):
+        with jax.ensure_compile_time_eval():
+            return np.asarray(primitive.bind(*args, **params))
+    name = primitive.name
+    if name == "mul":
+        a, b = args
+        for known, other in ((a, b), (b, a)):
+            if _is(known, 0):
+                return known
+            if _is(known, 1):
+                return other
+    elif name in ("add", "add_any"):
+        a, b = args
+        if _is(a, 0):
+            return b
+        if _is(b, 0):
+            return a
+    elif name == "sub":
+        a, b = args
+        if _is(b, 0):
+            return a
+        if _is(a, 0):
+            return jax.lax.neg_p.bind(b)
+    elif name == "div":
+        a, b = args
+        if _is(a, 0) or _is(b, 1):
+            return a
+    elif name == "select_n" and _known(args[0]):
+        return args[1 + int(args[0])]
+    return primitive.bind(*args, **params)
+
+
+def _add(a, b):
+    return _bind(jax.lax.add_p, (a, b), {})
+
+
+def _mul(a, b):
+    return _bind(jax.lax.mul_p, (a, b), {})
+
+
 def _sum(values):
     values = list(values)
     total = values[0]
     for v in values[1:]:
-        total = total + v
+        total = _add(total, v)
     return total
 
 
@@ -136,7 +194,8 @@ def _eval_jaxpr(jaxpr, consts, args):
         return env[v]
 
     for v, c in zip(jaxpr.constvars, consts):
-        env[v] = _objects(c if isinstance(c, np.ndarray) else jnp.asarray(c))
+        known = isinstance(c, np.ndarray) or not isinstance(c, jax.core.Tracer)
+        env[v] = _objects(np.asarray(c) if known else c)
     for v, a in zip(jaxpr.invars, args):
         env[v] = a
     for eqn in jaxpr.eqns:
@@ -157,7 +216,7 @@ def _apply(eqn, ins):  # noqa: C901 - one branch per primitive reads best
         ins = [np.broadcast_to(x, shape) for x in ins]
         return _filled(
             shape,
-            (eqn.primitive.bind(*(x[i] for x in ins), **p) for i in np.ndindex(shape)),
+            (_bind(eqn.primitive, [x[i] for x in ins], p) for i in np.ndindex(shape)),
         )
     if name in _CALLS:
         inner = _inner(eqn)
@@ -231,7 +290,7 @@ def _apply(eqn, ins):  # noqa: C901 - one branch per primitive reads best
 
         def entry(b, i, j):
             u, v = xm[b + i], ym[b + j]
-            return _sum(a * c for a, c in zip(u, v)) if len(u) else zero
+            return _sum(_mul(a, c) for a, c in zip(u, v)) if len(u) else zero
 
         return _filled(
             tuple(batch + free_x + free_y),
@@ -244,8 +303,8 @@ def _apply(eqn, ins):  # noqa: C901 - one branch per primitive reads best
         )
     if name in ("cumsum", "cumprod", "cummax", "cummin"):
         op = {
-            "cumsum": lambda a, b: a + b,
-            "cumprod": lambda a, b: a * b,
+            "cumsum": _add,
+            "cumprod": _mul,
             "cummax": jnp.maximum,
             "cummin": jnp.minimum,
         }[name]
