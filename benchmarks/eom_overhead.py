@@ -124,6 +124,68 @@ def double_pendulum_sympy(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
     return qddot, seconds
 
 
+def double_pendulum_particles(m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
+    r"""The double pendulum as people write it from particles: bob velocities as
+    vectors (`jnp.array`), $v_2 = v_1 + \dots$, $T = \sum \frac12 m\, v\cdot v$."""
+
+    def L(q, qdot, t):
+        th1, th2 = q[0], q[1]
+        w1, w2 = qdot[0], qdot[1]
+        v1 = l1 * w1 * jnp.array([jnp.cos(th1), jnp.sin(th1)])
+        v2 = v1 + l2 * w2 * jnp.array([jnp.cos(th2), jnp.sin(th2)])
+        y1 = -l1 * jnp.cos(th1)
+        y2 = y1 - l2 * jnp.cos(th2)
+        T = 0.5 * m1 * jnp.dot(v1, v1) + 0.5 * m2 * jnp.dot(v2, v2)
+        V = m1 * g * y1 + m2 * g * y2
+        return T - V
+
+    return L
+
+
+def chain_particles(N, m=1.0, l=1.0, g=1.0):
+    r"""A chain of N pendulums written from particles: bob k's velocity is
+    $v_k = v_{k-1} + l\dot\theta_k(\cos\theta_k, \sin\theta_k)$ (a `jnp.array`),
+    $T = \sum_k \frac12 m\, v_k\cdot v_k$, $V = \sum_k m g y_k$."""
+
+    def L(q, qdot, t):
+        v = jnp.zeros(2, q.dtype)
+        y = jnp.zeros((), q.dtype)
+        T = V = 0.0
+        for k in range(N):
+            v = v + l * qdot[k] * jnp.array([jnp.cos(q[k]), jnp.sin(q[k])])
+            y = y - l * jnp.cos(q[k])
+            T = T + 0.5 * m * jnp.dot(v, v)
+            V = V + m * g * y
+        return T - V
+
+    return L
+
+
+def chain_hand(N, m=1.0, l=1.0, g=1.0):
+    r"""The chain's equations of motion written by hand, solved as lagrax solves
+    (closed form for N <= 2, Cholesky beyond), so that the ratio is that of forming
+    $M$ and the forcing:
+    $M_{ij} = l^2 S_{\max(i,j)}\cos(\theta_i - \theta_j)$,
+    $f_i = -l^2\sum_j S_{\max(i,j)}\sin(\theta_i - \theta_j)\dot\theta_j^2
+    - g l S_i \sin\theta_i$, with $S_k = m(N - k)$ the mass at and below bob k
+    (0-based), and $\cos, \sin(\theta_i-\theta_j)$ from the N sines and cosines."""
+    from lagrax._mechanics import _solve_definite
+
+    S = m * (N - jnp.arange(N))
+    Smax = jnp.minimum(S[:, None], S[None, :])
+
+    def acc(q, qdot):
+        c, s = jnp.cos(q), jnp.sin(q)
+        cos_d = c[:, None] * c[None, :] + s[:, None] * s[None, :]
+        sin_d = s[:, None] * c[None, :] - c[:, None] * s[None, :]
+        M = l**2 * Smax * cos_d
+        f = -(l**2) * (Smax * sin_d) @ (qdot**2) - g * l * S * s
+        qddot, ok = _solve_definite(M, f)
+        return jnp.where(ok, qddot, jnp.nan)
+
+    return acc
+
+
 def _second_order(acc):
     def f(t, y, args):
         q, qdot = y
@@ -163,6 +225,11 @@ def systems(batch, key):
         },
         y0=(q0, qdot0),
         sympy_derivation_s=sympy_seconds,
+    )
+    out["double_pendulum_particles"] = dict(
+        L=double_pendulum_particles(),
+        hand=out["double_pendulum"]["hand"],
+        y0=(q0, qdot0),
     )
     return out
 
@@ -340,6 +407,140 @@ def check_accuracy(system, y0, count=64):
     return errors
 
 
+# ------------------------------------------------------------- isolated evaluations
+
+
+def unfused_accelerations(L):
+    """lagrax's accelerations before round three: the same forward-over-reverse
+    derivatives and solve, evaluated as array operations (not entry by entry)."""
+    from lagrax._mechanics import _lagrange_terms, _solve_definite
+
+    def acc(q, qdot):
+        M, rhs = _lagrange_terms(L, q, qdot, jnp.zeros((), q.dtype))
+        qddot, ok = _solve_definite(M, rhs)
+        return jnp.where(ok, qddot, jnp.nan)
+
+    return acc
+
+
+def autodiff_accelerations(L):
+    f = lagrax.vector_field(L)
+    return lambda q, qdot: f(jnp.zeros((), q.dtype), (q, qdot), None)[1]
+
+
+def evaluation_variants(system):
+    """Accelerations alone, `acc(q, qdot)`, keyed by variant name."""
+    accs = {
+        name: (lambda f: lambda q, qdot: f(0.0, (q, qdot), None)[1])(f)
+        for name, f in system["hand"].items()
+    }
+    accs["lagrax"] = autodiff_accelerations(system["L"])
+    accs["lagrax unfused (before)"] = unfused_accelerations(system["L"])
+    return accs
+
+
+def time_evaluations(accs, y0, iters, repeats):
+    """`iters` evaluations of each batch of accelerations in a `fori_loop` (the
+    state nudged each time, so nothing is hoisted), compiled once, timed in
+    interleaved rounds; ratios to "hand" of the median and of the fastest round."""
+
+    def build(acc):  # one lane; `compile_all` vmaps it over the batch
+        def run(q, qdot):
+            def body(i, state):
+                q, qdot = state
+                return q + 1e-6 * qdot, qdot + 1e-6 * acc(q, qdot)
+
+            return jax.lax.fori_loop(0, iters, body, (q, qdot))
+
+        return run
+
+    compiled, compile_s, outputs = compile_all(
+        {name: build(acc) for name, acc in accs.items()}, y0
+    )
+    samples = time_interleaved(compiled, y0, repeats)
+    ref_median = statistics.median(samples["hand"])
+    ref_min = min(samples["hand"])
+    lanes = y0[0].shape[0]
+    return {
+        name: dict(
+            median_s=statistics.median(times),
+            min_s=min(times),
+            ns_per_lane_evaluation=1e9 * min(times) / (lanes * iters),
+            compile_s=compile_s[name],
+            ratio=statistics.median(times) / ref_median,
+            ratio_min=min(times) / ref_min,
+        )
+        for name, times in samples.items()
+    }
+
+
+def chain_study(Ns, batch, iters, repeats, dt, nsteps, key):
+    """Chains of N pendulums written from particles against the hand-written EOM."""
+    out = {}
+    for N in Ns:
+        k1, k2 = jax.random.split(jax.random.fold_in(key, N))
+        q0 = jax.random.uniform(k1, (batch, N), minval=-0.5, maxval=0.5)
+        qdot0 = jax.random.uniform(k2, (batch, N), minval=-0.3, maxval=0.3)
+        system = dict(
+            L=chain_particles(N),
+            hand={"hand": _second_order(chain_hand(N))},
+            y0=(q0, qdot0),
+        )
+        entry = dict(accuracy=check_accuracy(system, system["y0"]))
+        entry["evaluation"] = time_evaluations(
+            evaluation_variants(system), system["y0"], iters, repeats
+        )
+        variants = fixed_variants(system, dt, nsteps)
+        variants.pop("simulate")
+        compiled, compile_s, outputs = compile_all(variants, system["y0"])
+        samples = time_interleaved(compiled, system["y0"], repeats)
+        entry["fixed"] = summarize(samples, compile_s, outputs)
+        out[N] = entry
+        ev, fx = entry["evaluation"], entry["fixed"]
+        print(
+            f"chain N={N:2d}: evaluation lagrax/hand {ev['lagrax']['ratio']:.2f} "
+            f"(fastest {ev['lagrax']['ratio_min']:.2f}), unfused "
+            f"{ev['lagrax unfused (before)']['ratio']:.2f}; Tsit5 solve "
+            f"{fx['lagrax']['ratio']:.2f}; compile lagrax "
+            f"{ev['lagrax']['compile_s']:.1f} s, hand {ev['hand']['compile_s']:.1f} s",
+            flush=True,
+        )
+    return out
+
+
+def plot_chain(report, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    chain = report["chain"]
+    Ns = sorted(chain, key=int)
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for key, label, style in [
+        (("evaluation", "lagrax"), "lagrax, accelerations alone", "o-"),
+        (("fixed", "lagrax"), "lagrax, in a Tsit5 solve", "s-"),
+        (("evaluation", "lagrax unfused (before)"), "before (unfused), alone", "x--"),
+    ]:
+        ratios = [chain[N][key[0]][key[1]]["ratio"] for N in Ns]
+        ax.plot([int(N) for N in Ns], ratios, style, label=label)
+    ax.axhline(1.0, color="0.5", lw=0.8)
+    ax.axhline(1.2, color="k", ls=":", lw=0.8)
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("N (pendulums in the chain)")
+    ax.set_ylabel("run time / hand-written EOM")
+    ax.set_title(
+        f"Particle-style chain of N pendulums: autodiff EOM cost (batch "
+        f"{report['batch']})",
+        fontsize=9,
+    )
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 # ------------------------------------------------------------------------------ main
 
 
@@ -379,7 +580,12 @@ def main(argv=None):
     parser.add_argument("--batch", type=int, default=None)
     parser.add_argument("--steps", type=int, default=None, help="fixed-step count")
     parser.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    parser.add_argument(
+        "--chain", type=int, nargs="*", default=None, help="chain sizes N"
+    )
     args = parser.parse_args(argv)
+    eval_iters = 200 if args.quick else 1000
+    Ns = args.chain or ([1, 2, 4] if args.quick else [1, 2, 4, 8, 16])
     batch = args.batch or (256 if args.quick else 1024)
     repeats = args.repeats or (3 if args.quick else 9)
     nsteps = args.steps or (200 if args.quick else 1000)
@@ -406,6 +612,10 @@ def main(argv=None):
         entry = dict(accuracy=check_accuracy(system, y0))
         if "sympy_derivation_s" in system:
             entry["sympy_derivation_s"] = system["sympy_derivation_s"]
+        if sysname.startswith("double_pendulum"):
+            entry["evaluation"] = time_evaluations(
+                evaluation_variants(system), y0, eval_iters, repeats
+            )
         for regime, variants in [
             ("fixed", fixed_variants(system, dt, nsteps)),
             ("adaptive", adaptive_variants(system, t1_adaptive, rtol, max_steps)),
@@ -414,6 +624,10 @@ def main(argv=None):
             samples = time_interleaved(compiled, y0, repeats)
             entry[regime] = summarize(samples, compile_s, outputs)
         report["systems"][sysname] = entry
+    report["evaluation"] = dict(batch=batch, iterations=eval_iters)
+    report["chain"] = chain_study(
+        Ns, batch, eval_iters, repeats, dt, nsteps, jax.random.key(1)
+    )
 
     header = (
         f"{'system':<16} {'regime':<8} {'variant':<9} {'median ms':>10} {'ratio':>7} "
@@ -435,11 +649,19 @@ def main(argv=None):
                 )
         if "sympy_derivation_s" in entry:
             print(f"{sysname}: sympy derivation {entry['sympy_derivation_s']:.2f} s")
+        for name, row in entry.get("evaluation", {}).items():
+            print(
+                f"{sysname:<16} accelerations alone ({eval_iters} x {batch} lanes) "
+                f"{name:<24} {1e3 * row['median_s']:>9.1f} ms ratio "
+                f"{row['ratio']:.3f} (fastest {row['ratio_min']:.3f}), "
+                f"{row['ns_per_lane_evaluation']:.1f} ns per lane-evaluation"
+            )
     args.out.mkdir(parents=True, exist_ok=True)
     stem = "eom_overhead_quick" if args.quick else "eom_overhead"
     report["quick"] = args.quick
     (args.out / f"{stem}.json").write_text(json.dumps(report, indent=1))
     plot(report, args.out / f"{stem}.png")
+    plot_chain(report, args.out / f"{stem}_chain.png")
     print(f"wrote {args.out / stem}.json and .png")
 
 

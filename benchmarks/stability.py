@@ -3,11 +3,14 @@ r"""Where methods fail: long horizons, stiffness, coordinate singularities, floa
 Four experiments, each reporting failures through diffrax's `result` (or, where the
 solver says "successful" with a wrong answer, through a check of the physics):
 
-1. *Long horizons.* The pendulum $L = \frac12\dot\theta^2 + \cos\theta$ released at
-   2.5 rad, for $10^5$ periods ($10^3$ with `--quick`): energy error against time for
-   `lagrax.VariationalMidpoint` (fixed step $h = T/40$), Tsit5 with the fixed step
-   $2h$ (the same number of evaluations per unit time: ~3 Newton iterations per
-   midpoint step, 6 stages per Tsit5 step) and Tsit5 adaptive at rtol = atol = 1e-8.
+1. *Long horizons.* For $10^5$ periods ($10^3$ with `--quick`, or `--periods N`):
+   the pendulum $L = \frac12\dot\theta^2 + \cos\theta$ released at 2.5 rad, the
+   double pendulum from rest at (0.5, -0.3) rad, and the spherical pendulum (whose
+   azimuth is cyclic: Noether momentum $p_\phi$). Energy (and $p_\phi$) error against
+   time for `lagrax.VariationalMidpoint`, `lagrax.GaussLegendre4` and
+   `lagrax.GaussLegendre6` at the same step $h = T/40$, Tsit5 at $T/20$ (about
+   the midpoint rule's evaluations: ~3 Newton iterations per midpoint step, 6 stages
+   per Tsit5 step), and for the pendulum Tsit5 adaptive at rtol = atol = 1e-8.
 2. *Stiffness.* A pendulum on a very stiff spring ($k = 10^8$: spring frequency $10^4$
    against ~1), $t_1 = 10$, rtol = atol = 1e-6 and `max_steps` = 4096: explicit Tsit5,
    Dopri5, Dopri8 against implicit Kvaerno5 and the variational integrator ($h=0.01$,
@@ -24,7 +27,7 @@ solver says "successful" with a wrong answer, through a check of the physics):
    rtol = atol = 1e-3 … 1e-12 (and the variational integrator over step sizes), in
    each dtype: where float32 stops giving more accuracy.
 
-Usage: `python benchmarks/stability.py [--quick]`. Writes
+Usage: `python benchmarks/stability.py [--quick] [--periods N]`. Writes
 `benchmarks/results/stability.json` and `stability_{long,stiff,cusp,float32}.png`
 (`*_quick*` with `--quick`).
 """
@@ -76,62 +79,137 @@ def _energies(L, qs, qdots):
     return np.asarray(jax.vmap(lambda q, v: lagrax.energy(L, q, v, 0.0))(qs, qdots))
 
 
+def _run_long(L, y0, solver, dt, tol, t1, ts, windows, invariants):
+    """One long solve, sampled at `ts`; the invariants' errors there.
+
+    `windows` maps a name to a boolean mask over `ts` (the first and the last periods,
+    sampled at every step): the maxima over those windows are what is compared, so
+    that early and late errors are both maxima over many phases of the motion.
+    """
+    if tol is None:
+        controller = dfx.ConstantStepSize()
+    else:
+        controller = dfx.PIDController(rtol=tol, atol=tol)
+    start = time.perf_counter()
+    sol = dfx.diffeqsolve(
+        lagrax.LagrangianTerm(L),
+        solver,
+        0.0,
+        t1,
+        dt,
+        y0,
+        saveat=dfx.SaveAt(ts=ts),
+        stepsize_controller=controller,
+        max_steps=None,
+        throw=False,
+    )
+    jax.block_until_ready(sol)
+    seconds = time.perf_counter() - start
+    t = np.asarray(sol.ts)
+    # For the chart: every sample outside the dense windows, ~1000 inside each.
+    keep = np.ones(len(t), bool)
+    for mask in windows.values():
+        idx = np.flatnonzero(mask)
+        keep[idx] = False
+        keep[idx[:: max(len(idx) // 1000, 1)]] = True
+    out = dict(
+        status=_status(sol),
+        steps=int(sol.stats["num_steps"]),
+        seconds_including_compile=seconds,
+        t=t[keep].tolist(),
+    )
+    for name, f in invariants.items():
+        values = np.asarray(jax.vmap(lambda q, v: f(L, q, v, 0.0))(*sol.ys))
+        err = np.abs(values - float(f(L, *y0, 0.0)))
+        out[f"{name}_error"] = err[keep].tolist()
+        for window, mask in windows.items():
+            out[f"{name}_error_max_{window}"] = float(err[mask].max())
+        out[f"{name}_error_max"] = float(err.max())
+    return out
+
+
+def _energy(L, q, qdot, t):
+    return lagrax.energy(L, q, qdot, t)
+
+
+def _p_phi(L, q, qdot, t):
+    return lagrax.momenta(L, q, qdot, t)[1]
+
+
 def long_horizon(periods, samples=4000):
-    T = float(pendulum.pendulum_period(AMPLITUDE))
-    y0 = (jnp.array([AMPLITUDE]), jnp.array([0.0]))
-    E0 = float(lagrax.energy(PENDULUM, *y0))
-    h = T / 40
-    t1 = 40 * periods * h
-    # Log-spaced sample times, so that early and late errors are both visible, on the
-    # grid of both fixed steps (h and 2h): between steps the output would be the
-    # linear interpolant, whose error is not the integrator's.
-    k = np.unique(np.round(np.geomspace(1, 20 * periods, samples)).astype(int))
-    ts = jnp.asarray(2 * k * h)
-    term = lagrax.LagrangianTerm(PENDULUM)
-    runs = {
-        "VariationalMidpoint h=T/40": (lagrax.VariationalMidpoint(), h, None),
-        "Tsit5 h=T/20 (same evaluations)": (dfx.Tsit5(), 2 * h, None),
-        "Tsit5 adaptive 1e-8": (dfx.Tsit5(), None, 1e-8),
-    }
+    """Energy (and, for the spherical pendulum, Noether momentum) over `periods`.
+
+    Three systems: the pendulum at 2.5 rad (period T exact), the double pendulum from
+    rest at (0.5, -0.3) rad (T: the slow normal mode's period, 8.2), the spherical
+    pendulum from θ = 1, θ̇ = 0.2, φ̇ = 1.3 (T: 2π/φ̇₀; φ is cyclic, so p_φ is
+    conserved exactly by a variational integrator). Fixed steps T/40 (midpoint,
+    Gauss–Legendre 4 and 6), T/20 (Tsit5); adaptive Tsit5 at 1e-8 for the pendulum.
+    Compared: the largest error over every step of the first 100 periods against
+    that over the last 100.
+    """
+    from lagrax.systems import double_pendulum, spherical_pendulum
+
+    T_pend = float(pendulum.pendulum_period(AMPLITUDE))
+    T_dp = float(2 * np.pi / double_pendulum.normal_mode_frequencies()[0])
+    T_sph = 2 * np.pi / 1.3
+    systems = {
+        "pendulum": (PENDULUM, (jnp.array([AMPLITUDE]), jnp.array([0.0])), T_pend,
+                     dict(energy=_energy)),
+        "double_pendulum": (double_pendulum.lagrangian(),
+                            (jnp.array([0.5, -0.3]), jnp.array([0.0, 0.0])), T_dp,
+                            dict(energy=_energy)),
+        "spherical_pendulum": (spherical_pendulum.lagrangian(),
+                               (jnp.array([1.0, 0.0]), jnp.array([0.2, 1.3])), T_sph,
+                               dict(energy=_energy, p_phi=_p_phi)),
+    }  # fmt: skip
     out = {}
-    for name, (solver, dt, tol) in runs.items():
-        if tol is None:
-            controller = dfx.ConstantStepSize()
-        else:
-            controller = dfx.PIDController(rtol=tol, atol=tol)
-        start = time.perf_counter()
-        sol = dfx.diffeqsolve(
-            term,
-            solver,
-            0.0,
-            t1,
-            dt,
-            y0,
-            saveat=dfx.SaveAt(ts=ts),
-            stepsize_controller=controller,
-            max_steps=None,
-            throw=False,
-        )
-        jax.block_until_ready(sol)
-        seconds = time.perf_counter() - start
-        err = np.abs(_energies(PENDULUM, *sol.ys) - E0)
-        tenth = len(err) // 10
-        out[name] = dict(
-            status=_status(sol),
-            steps=int(sol.stats["num_steps"]),
-            seconds_including_compile=seconds,
-            t=np.asarray(sol.ts).tolist(),
-            energy_error=err.tolist(),
-            energy_error_max_first_tenth_of_samples=float(err[:tenth].max()),
-            energy_error_max_last_tenth_of_samples=float(err[-tenth:].max()),
-        )
-        print(
-            f"long horizon {periods} periods, {name:32s} {out[name]['status']}, "
-            f"{out[name]['steps']} steps, |dE| max at start "
-            f"{err[:tenth].max():.2e}, at end {err[-tenth:].max():.2e}",
-            flush=True,
-        )
-    return dict(periods=periods, period=T, runs=out)
+    for sysname, (L, y0, T, invariants) in systems.items():
+        h = T / 40
+        runs = {
+            "VariationalMidpoint h=T/40": (lagrax.VariationalMidpoint(), h, None),
+            "GaussLegendre4 h=T/40": (lagrax.GaussLegendre4(), h, None),
+            "GaussLegendre6 h=T/40": (lagrax.GaussLegendre6(), h, None),
+            "Tsit5 h=T/20": (dfx.Tsit5(), 2 * h, None),
+        }
+        if sysname == "pendulum":
+            runs["Tsit5 adaptive 1e-8"] = (dfx.Tsit5(), None, 1e-8)
+        t1 = 40 * periods * h
+        rows = {}
+        for name, (solver, dt, tol) in runs.items():
+            # Every step of the first and of the last `dense` periods, log-spaced
+            # steps in between (on the step grid: between steps the output would be
+            # the linear interpolant, whose error is not the integrator's; adaptive
+            # Tsit5 is sampled on the T/40 grid).
+            per = round(T / (dt or h))
+            total = per * periods
+            dense = min(100, periods // 10) * per
+            k = np.unique(np.concatenate([
+                np.arange(1, dense + 1),
+                np.round(np.geomspace(dense, total - dense, samples)).astype(int),
+                np.arange(total - dense, total + 1),
+            ]))  # fmt: skip
+            ts = jnp.asarray(k * (dt or h))
+            windows = {
+                "first_periods": k <= dense,
+                "last_periods": k >= total - dense,
+            }
+            row = _run_long(L, y0, solver, dt, tol, t1, ts, windows, invariants)
+            rows[name] = row
+            extra = (
+                f", max|dp_phi| {row['p_phi_error_max']:.2e}" if "p_phi" in invariants
+                else ""
+            )
+            print(
+                f"long horizon {periods} periods, {sysname}, {name:28s} "
+                f"{row['status']}, {row['steps']} steps, "
+                f"{row['seconds_including_compile']:.0f} s, |dE| max over the first "
+                f"{dense // per} periods {row['energy_error_max_first_periods']:.2e}, "
+                f"over the last {row['energy_error_max_last_periods']:.2e}{extra}",
+                flush=True,
+            )
+        out[sysname] = dict(period=T, y0=[np.asarray(x).tolist() for x in y0],
+                            window_periods=dense // per, runs=rows)  # fmt: skip
+    return dict(periods=periods, systems=out)
 
 
 def stiffness(k=1e8, t1=10.0, max_steps=4096):
@@ -145,9 +223,10 @@ def stiffness(k=1e8, t1=10.0, max_steps=4096):
         "Dopri8": dfx.Dopri8(),
         "Kvaerno5": dfx.Kvaerno5(),
         "VariationalMidpoint h=0.01": lagrax.VariationalMidpoint(),
+        "GaussLegendre4 h=0.01": lagrax.GaussLegendre4(),
     }
     for name, solver in runs.items():
-        fixed = name.startswith("Variational")
+        fixed = name.endswith("h=0.01")
         start = time.perf_counter()
         sol = dfx.diffeqsolve(
             lagrax.LagrangianTerm(L),
@@ -333,15 +412,24 @@ def _plt():
 
 def figure_long(long):
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for name, run in long["runs"].items():
-        t = np.asarray(run["t"]) / long["period"]
-        ax.loglog(t, np.maximum(run["energy_error"], 1e-17), lw=0.7, label=name)
-    ax.set_xlabel("time [periods]")
-    ax.set_ylabel("|E(t) - E(0)|")
-    ax.set_title(f"Pendulum at {AMPLITUDE} rad: energy error over long horizons")
-    ax.legend(fontsize=8)
-    ax.grid(True, which="both", alpha=0.3)
+    systems = long["systems"]
+    panels = [(name, "energy") for name in systems] + [
+        (name, "p_phi") for name, sysrow in systems.items()
+        if any("p_phi_error" in r for r in sysrow["runs"].values())
+    ]  # fmt: skip
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2))
+    for ax, (sysname, what) in zip(axes, panels):
+        sysrow = systems[sysname]
+        for name, run in sysrow["runs"].items():
+            t = np.asarray(run["t"]) / sysrow["period"]
+            err = np.maximum(run[f"{what}_error"], 1e-17)
+            ax.loglog(t, err, lw=0.7, label=name)
+        ax.set_xlabel("time [periods]")
+        ax.set_ylabel("|E(t) - E(0)|" if what == "energy" else "|p_φ(t) - p_φ(0)|")
+        ax.set_title(f"{sysname}: {what}", fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=6)
+    fig.suptitle(f"Invariants over {long['periods']:g} periods (fixed steps per period)")
     fig.tight_layout()
     return fig
 
@@ -429,8 +517,9 @@ def plot(results, suffix):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a small, fast run")
+    parser.add_argument("--periods", type=int, default=None, help="long-run length")
     args = parser.parse_args()
-    periods = 1_000 if args.quick else 100_000
+    periods = args.periods or (1_000 if args.quick else 100_000)
     tols = [10.0**-k for k in range(3, 13)]
     steps = [2**k for k in range(4, 12 if args.quick else 16)]
     results = dict(
@@ -438,6 +527,7 @@ def main():
             machine=f"{platform.machine()} {os.cpu_count()} cores (shared, noisy)",
             jax=jax.__version__,
             quick=args.quick,
+            periods=periods,
         ),
         long_horizon=long_horizon(periods),
         stiffness=stiffness(max_steps=1024 if args.quick else 4096),

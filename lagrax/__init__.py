@@ -1,6 +1,10 @@
 import importlib.metadata
 
 from . import systems as systems
+from ._gauss_legendre import (
+    GaussLegendre4 as GaussLegendre4,
+    GaussLegendre6 as GaussLegendre6,
+)
 from ._mechanics import (
     accelerations as accelerations,
     energy as energy,

@@ -1,4 +1,10 @@
-"""A variational (symplectic, momentum-preserving) integrator, as a diffrax solver."""
+"""Variational (symplectic, momentum-preserving) integrators, as diffrax solvers.
+
+`AbstractVariationalSolver` holds what every such solver shares (the Lagrangian term,
+the Newton root finder, the momentum carried in the solver state);
+`VariationalMidpoint` is the second-order one. The Gauss–Legendre solvers of orders 4
+and 6 are in `_gauss_legendre.py`.
+"""
 
 from collections.abc import Callable
 from typing import ClassVar
@@ -11,11 +17,14 @@ import lineax as lx
 import optimistix as optx
 from diffrax._term import WrapTerm  # not public; diffeqsolve wraps every term in it
 
-from ._misc import describe
+from ._checks import describe
+from ._mechanics import _momenta
 from ._term import LagrangianTerm
 
 
-def _unwrap(term) -> tuple[LagrangianTerm, jax.Array]:
+def _unwrap(
+    term, solver_name="VariationalMidpoint"
+) -> tuple[LagrangianTerm, jax.Array]:
     # diffeqsolve wraps every term in a `WrapTerm` that flips time when t1 < t0; the
     # discrete Lagrangian needs the real times, so undo it here.
     direction = jnp.array(1)
@@ -24,17 +33,101 @@ def _unwrap(term) -> tuple[LagrangianTerm, jax.Array]:
         term = term.term
     if not isinstance(term, LagrangianTerm):
         raise TypeError(
-            "`terms` must be a `lagrax.LagrangianTerm(L)`: VariationalMidpoint is "
+            f"`terms` must be a `lagrax.LagrangianTerm(L)`: {solver_name} is "
             "built from the Lagrangian itself, not from a vector field; got "
             f"{type(term).__name__}. Pass `lagrax.LagrangianTerm(L, force=...)` to "
             "`diffrax.diffeqsolve`, or use `lagrax.simulate(L, ..., "
-            "solver=lagrax.VariationalMidpoint(), dt0=h)`."
+            f"solver=lagrax.{solver_name}(), dt0=h)`."
         )
     return term, direction
 
 
-def _momenta(L, q, qdot, t):
-    return jax.grad(L, argnums=1)(q, qdot, t)
+def _newton_scales(L, q0, qdot0, t0):
+    r"""$(|\mathrm{diag}\,M|, |\mathrm{diag}\,\partial^2L/\partial q^2|)$ at the start of
+    a step: the units in which the Newton residuals (momenta) are put back into the
+    units of the unknowns."""
+    m = jnp.abs(jnp.diag(jax.jacfwd(_momenta, argnums=2)(L, q0, qdot0, t0)))
+    dLdq = jax.grad(L, argnums=0)
+    kq = jnp.abs(jnp.diag(jax.jacfwd(dLdq, argnums=0)(q0, qdot0, t0)))
+    return m, kq
+
+
+def _promote(sol, *values):
+    """The optimistix result as a diffrax one; `nonfinite` for a non-finite answer."""
+    result = dfx.RESULTS.promote(sol.result)
+    finite = jnp.array(True)
+    for value in values:
+        finite = finite & jnp.all(jnp.isfinite(value))
+    return dfx.RESULTS.where(
+        (result == dfx.RESULTS.successful) & ~finite, dfx.RESULTS.nonfinite, result
+    )
+
+
+class AbstractVariationalSolver(dfx.AbstractSolver):
+    r"""A fixed-step variational integrator built from a `lagrax.LagrangianTerm`.
+
+    The state is `y = (q, qdot)`; the solver state is `(p, newton_iterations)`, the
+    momentum the scheme advances (never recomputed from `qdot`, so it never drifts)
+    and a running count of Newton iterations. Each step solves its implicit equations
+    with `root_finder` (at most `root_find_max_steps` iterations, `throw=False`); a
+    solve that does not converge ends the diffrax solve with the optimistix result
+    promoted to `diffrax.RESULTS`, and a non-finite answer with `nonfinite`.
+    """
+
+    root_finder: optx.AbstractRootFinder | None = None
+    root_find_max_steps: int = eqx.field(static=True, default=16)
+
+    # Any term passes diffrax's own compatibility check (whose message names no
+    # argument); `init` then rejects anything but a `LagrangianTerm` with a message
+    # naming `terms`.
+    term_structure: ClassVar = dfx.AbstractTerm
+    interpolation_cls: ClassVar[Callable[..., dfx.LocalLinearInterpolation]] = (
+        dfx.LocalLinearInterpolation
+    )
+
+    def __check_init__(self):
+        if self.root_finder is not None and not isinstance(
+            self.root_finder, optx.AbstractRootFinder
+        ):
+            raise TypeError(
+                "`root_finder` must be None or an optimistix root finder (an instance "
+                "of `optimistix.AbstractRootFinder`), e.g. "
+                "`optimistix.Newton(rtol=1e-8, atol=1e-8)`; got "
+                f"{describe(self.root_finder)}."
+            )
+        steps = self.root_find_max_steps
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ValueError(
+                f"`root_find_max_steps` must be a positive int; got {steps!r}."
+            )
+
+    def _root_finder(self, dtype):
+        if self.root_finder is not None:
+            return self.root_finder
+        tol = float(jnp.finfo(dtype).eps) ** 0.5
+        # Cauchy termination: both the Newton update (in the units of the unknowns, as
+        # diffrax's tolerances) and the residual (made relative in `step`) are small.
+        # (optimistix 0.1.0's rate-based test, cauchy_termination=False, reports
+        # "diverged" at the second iteration unless it has already converged.)
+        return optx.Newton(rtol=tol, atol=tol, linear_solver=lx.LU())
+
+    def _root_find(self, residual, guess):
+        return optx.root_find(
+            residual,
+            self._root_finder(guess.dtype),
+            guess,
+            max_steps=self.root_find_max_steps,
+            throw=False,
+        )
+
+    def init(self, terms, t0, t1, y0, args):
+        term, direction = _unwrap(terms, type(self).__name__)
+        q0, qdot0 = y0
+        p0 = _momenta(term.L, q0, qdot0, direction * t0)
+        return p0, jnp.array(0, dtype=jnp.int32)
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
 
 
 def _discrete_momenta(L, force, q0, dq, t0, h):
@@ -64,7 +157,7 @@ def _discrete_momenta(L, force, q0, dq, t0, h):
     return dLdv - half, dLdv + half
 
 
-class VariationalMidpoint(dfx.AbstractSolver):
+class VariationalMidpoint(AbstractVariationalSolver):
     r"""The midpoint variational integrator, built from the Lagrangian $L$.
 
     The discrete Lagrangian is the midpoint rule for the action over one step $h$,
@@ -79,8 +172,8 @@ class VariationalMidpoint(dfx.AbstractSolver):
     $$p_0 = -\frac{\partial L_d}{\partial q_0}(q_0, q_1) - f^-_d, \qquad
       p_1 = \frac{\partial L_d}{\partial q_1}(q_0, q_1) + f^+_d.$$
 
-    The first equation is implicit in $q_1$; it is solved by `optimistix.Newton` with
-    an autodiff Jacobian and a `lineax.LU` linear solve, together with
+    The first equation is implicit in $q_1$; it is solved by `root_finder` (Newton
+    with an autodiff Jacobian and an LU solve by default), together with
     $\partial L/\partial \dot q(q_1, \dot q_1, t_1) = p_1$ for the velocity reported
     in the state. Without forces and explicit time dependence the map
     $(q_0, p_0) \mapsto (q_1, p_1)$ is symplectic, so the energy error stays bounded
@@ -101,26 +194,25 @@ class VariationalMidpoint(dfx.AbstractSolver):
 
     **Arguments:**
 
-    - `rtol`, `atol`: tolerances of the Newton iteration on the displacement
-        $q_1 - q_0$ and the velocity $\dot q_1$ (in their units, as diffrax's), and
-        `atol` on the residual relative to the momenta.
-        Default: $\sqrt\varepsilon$ of the state's dtype. Newton converges
+    - `root_finder`: an `optimistix.AbstractRootFinder` for the step's equations, as
+        in diffrax's implicit solvers. Default (`None`): `optimistix.Newton` with
+        `rtol = atol =` $\sqrt\varepsilon$ of the state's dtype and a `lineax.LU()`
+        linear solve (the Jacobian is not symmetric in general). Its tolerances apply
+        to the displacement $q_1 - q_0$ and the velocity $\dot q_1$ (in their units),
+        and `atol` to the residual relative to the momenta. Newton converges
         quadratically and the last update is applied after the test passes, so the
         solution is accurate to ~$\varepsilon$ all the same; a tighter test can fail
         on round-off alone (a stiff spring's $k(r-1)$ makes $\dot q$ uncertain by
         $h\varepsilon k/m$).
-    - `max_newton_steps`: the most Newton iterations per step (default 16).
-    - `linear_solver`: the lineax solver for the Newton systems (default `lineax.LU()`;
-        the Jacobian is not symmetric in general).
+    - `root_find_max_steps`: the most root-finder iterations per step (default 16).
 
     **Raises:**
 
-    - `ValueError`: `rtol` or `atol` not `None` or a float in (0, 1);
-        `max_newton_steps` not a positive int.
-    - `TypeError`: `linear_solver` is not a `lineax.AbstractLinearSolver` instance;
+    - `TypeError`: `root_finder` is not an `optimistix.AbstractRootFinder`;
         (in `diffrax.diffeqsolve`) the term is not a `lagrax.LagrangianTerm`: a plain
         `diffrax.ODETerm(lagrax.vector_field(L))` carries no Lagrangian to build the
         scheme from. `lagrax.simulate` passes a `LagrangianTerm` itself.
+    - `ValueError`: `root_find_max_steps` is not a positive int.
 
     **Example:**
 
@@ -130,62 +222,12 @@ class VariationalMidpoint(dfx.AbstractSolver):
     ```
     """
 
-    rtol: float | None = None
-    atol: float | None = None
-    max_newton_steps: int = eqx.field(static=True, default=16)
-    linear_solver: lx.AbstractLinearSolver = lx.LU()
-
-    # Any term passes diffrax's own compatibility check (whose message names no
-    # argument); `init` then rejects anything but a `LagrangianTerm` with a message
-    # naming `terms`.
-    term_structure: ClassVar = dfx.AbstractTerm
-    interpolation_cls: ClassVar[Callable[..., dfx.LocalLinearInterpolation]] = (
-        dfx.LocalLinearInterpolation
-    )
-
-    def __check_init__(self):
-        for name in ("rtol", "atol"):
-            value = getattr(self, name)
-            if value is not None and not (
-                isinstance(value, int | float) and 0 < value < 1
-            ):
-                raise ValueError(
-                    f"`{name}` must be None or a float in (0, 1); got {value!r}."
-                )
-        if not isinstance(self.max_newton_steps, int) or self.max_newton_steps < 1:
-            raise ValueError(
-                "`max_newton_steps` must be a positive int; got "
-                f"{self.max_newton_steps!r}."
-            )
-        if not isinstance(self.linear_solver, lx.AbstractLinearSolver):
-            raise TypeError(
-                "`linear_solver` must be a lineax linear solver (an instance of "
-                "`lineax.AbstractLinearSolver`), e.g. `lineax.LU()`; got "
-                f"{describe(self.linear_solver)}."
-            )
-
     def order(self, terms):
         return 2
 
-    def init(self, terms, t0, t1, y0, args):
-        term, direction = _unwrap(terms)
-        q0, qdot0 = y0
-        p0 = _momenta(term.L, q0, qdot0, direction * t0)
-        return p0, jnp.array(0, dtype=jnp.int32)
-
-    def _root_finder(self, dtype):
-        tol = float(jnp.finfo(dtype).eps) ** 0.5
-        rtol = tol if self.rtol is None else self.rtol
-        atol = tol if self.atol is None else self.atol
-        # Cauchy termination: both the Newton update (in the units of q and qdot, as
-        # diffrax's tolerances) and the residual (made relative in `step`) are small.
-        # (optimistix 0.1.0's rate-based test, cauchy_termination=False, reports
-        # "diverged" at the second iteration unless it has already converged.)
-        return optx.Newton(rtol=rtol, atol=atol, linear_solver=self.linear_solver)
-
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump
-        term, direction = _unwrap(terms)
+        term, direction = _unwrap(terms, "VariationalMidpoint")
         L, force = term.L, term.force
         q0, qdot0 = y0
         p0, iterations = solver_state
@@ -202,9 +244,7 @@ class VariationalMidpoint(dfx.AbstractSolver):
         # the second (made relative to the velocities). In momentum units round-off
         # alone could fail the test: a stiff spring k(r - 1) carries an error of
         # eps*k, which only the (h/4)k term of the Jacobian scales away.
-        m = jnp.abs(jnp.diag(jax.jacfwd(_momenta, argnums=2)(L, q0, qdot0, s0)))
-        dLdq = jax.grad(L, argnums=0)
-        kq = jnp.abs(jnp.diag(jax.jacfwd(dLdq, argnums=0)(q0, qdot0, s0)))
+        m, kq = _newton_scales(L, q0, qdot0, s0)
         tiny = jnp.finfo(q0.dtype).tiny
         m = jnp.maximum(m, tiny)
         mq = jnp.maximum(m / jnp.abs(h) + 0.25 * jnp.abs(h) * kq, tiny)
@@ -218,35 +258,20 @@ class VariationalMidpoint(dfx.AbstractSolver):
             r = jnp.concatenate([pm - p0, _momenta(L, q0 + dq, qdot1, s1) - pp])
             return r / scale
 
-        sol = optx.root_find(
-            residual,
-            self._root_finder(q0.dtype),
-            guess,
-            max_steps=self.max_newton_steps,
-            throw=False,
-        )
+        sol = self._root_find(residual, guess)
         dq, qdot1 = sol.value[:n], sol.value[n:]
         q1 = q0 + dq
         _, p1 = _discrete_momenta(L, force, q0, dq, s0, h)
-        result = dfx.RESULTS.promote(sol.result)
-        finite = jnp.all(jnp.isfinite(sol.value)) & jnp.all(jnp.isfinite(p1))
-        result = dfx.RESULTS.where(
-            (result == dfx.RESULTS.successful) & ~finite,
-            dfx.RESULTS.nonfinite,
-            result,
-        )
+        result = _promote(sol, sol.value, p1)
         y1 = (q1, qdot1)
         dense_info = dict(y0=y0, y1=y1)
         new_state = (p1, iterations + sol.stats["num_steps"].astype(jnp.int32))
         return y1, None, dense_info, new_state, result
 
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
-
 
 VariationalMidpoint.__init__.__doc__ = """**Arguments:**
 
-- `rtol`, `atol`: Newton tolerances (default $\\sqrt\\varepsilon$ of the dtype).
-- `max_newton_steps`: the most Newton iterations per step (default 16).
-- `linear_solver`: a `lineax` solver for the Newton systems (default `lineax.LU()`).
+- `root_finder`: an `optimistix.AbstractRootFinder` (default: `optimistix.Newton` at
+    $\\sqrt\\varepsilon$ of the dtype with `lineax.LU()`).
+- `root_find_max_steps`: the most root-finder iterations per step (default 16).
 """

@@ -1,9 +1,11 @@
-"""The variational midpoint integrator: order, invariants, diffrax use, failures."""
+"""Variational integrators (midpoint, Gauss–Legendre 4 and 6): order, invariants,
+diffrax use, failures."""
 
 import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import lagrax
@@ -238,7 +240,7 @@ def test_newton_failure_is_reported_not_nan_success():
         y0,
         1.0,
         0.1,
-        solver=lagrax.VariationalMidpoint(max_newton_steps=1),
+        solver=lagrax.VariationalMidpoint(root_find_max_steps=1),
         throw=False,
     )
     assert sol.result == dfx.RESULTS.nonlinear_max_steps_reached
@@ -272,9 +274,197 @@ def test_wrong_term_is_a_clear_error():
 
 
 def test_bad_arguments():
-    with pytest.raises(ValueError, match="max_newton_steps"):
-        lagrax.VariationalMidpoint(max_newton_steps=0)
-    with pytest.raises(ValueError, match="rtol"):
-        lagrax.VariationalMidpoint(rtol=-1.0)
+    for cls in (lagrax.VariationalMidpoint, lagrax.GaussLegendre4):
+        with pytest.raises(ValueError, match="root_find_max_steps"):
+            cls(root_find_max_steps=0)
+        with pytest.raises(ValueError, match="root_find_max_steps"):
+            cls(root_find_max_steps=2.5)
+        with pytest.raises(TypeError, match="root_finder"):
+            cls(root_finder=optx.Newton)  # the class, not an instance
+        with pytest.raises(TypeError, match="root_finder"):
+            cls(root_finder="newton")
     with pytest.raises(TypeError, match="L"):
         lagrax.LagrangianTerm(3.0)
+
+
+# --------------------------------------------------------------- Gauss–Legendre 4, 6
+
+GAUSS = [(lagrax.GaussLegendre4, 4), (lagrax.GaussLegendre6, 6)]
+GAUSS_IDS = ["GL4", "GL6"]
+
+
+@pytest.mark.parametrize(("cls", "order"), GAUSS, ids=GAUSS_IDS)
+@pytest.mark.parametrize(
+    "L",
+    [PENDULUM, pytest.param(double_pendulum(), marks=pytest.mark.slow)],
+    ids=["pendulum", "double"],
+)
+def test_gauss_legendre_convergence_order(cls, order, L):
+    n = 1 if L is PENDULUM else 2
+    y0 = (jnp.full((n,), 2.5 if n == 1 else 1.0), jnp.zeros(n))
+    t1 = 4.0
+    ref = _reference(L, y0, t1)
+    # Errors between ~1e-4 and ~1e-11: above the reference's ~1e-13, below the
+    # pre-asymptotic range.
+    hs = np.array([0.4, 0.2, 0.1, 0.05]) if order == 4 else 0.5 / 2.0 ** np.arange(4)
+    errors = []
+    for h in hs:
+        sol = _solve(L, y0, t1, h, solver=cls())
+        assert sol.result == dfx.RESULTS.successful
+        errors.append(
+            max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(sol.ys, ref.ys))
+        )
+    assert min(errors) > 1e-12, errors  # not at the reference's round-off
+    measured, _ = np.polyfit(np.log(hs), np.log(errors), 1)
+    assert order - 0.25 < measured < order + 0.25, (measured, errors)
+    assert cls().order(None) == order
+
+
+def test_gauss_legendre_beats_midpoint_at_same_step():
+    y0 = (jnp.array([2.5]), jnp.array([0.0]))
+    ref = _reference(PENDULUM, y0, 4.0)
+
+    def error(solver):
+        sol = _solve(PENDULUM, y0, 4.0, 0.1, solver=solver)
+        return max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(sol.ys, ref.ys))
+
+    e2, e4, e6 = (error(s()) for s in (lagrax.VariationalMidpoint, *[c for c, _ in GAUSS]))
+    assert e6 < 1e-2 * e4 < 1e-4 * e2, (e2, e4, e6)
+
+
+@pytest.mark.parametrize(("cls", "h_per_period"), [(lagrax.GaussLegendre4, 10),
+                                                   (lagrax.GaussLegendre6, 5)],
+                         ids=GAUSS_IDS)
+def test_gauss_legendre_energy_bounded_no_drift(cls, h_per_period):
+    T = float(pendulum_period(2.5))
+    h = T / h_per_period
+    vi = _energy_window_maxima(cls(), h, 1_000)
+    # Bounded: as large in the last tenth of 1000 periods as in the first, not more;
+    # and at truncation level (well above round-off), so the test is not vacuous.
+    assert vi[-1] < 1.05 * vi[0], vi
+    assert vi[0] > 1e-9, vi
+    # Tsit5, even at a smaller step (T/20), drifts over the same run.
+    rk = _energy_window_maxima(dfx.Tsit5(), T / 20, 1_000)
+    assert rk[-1] > 5 * rk[0], rk
+
+
+@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+def test_gauss_legendre_noether_momentum_exact(cls):
+    L = spherical_pendulum()
+    y0 = (jnp.array([1.0, 0.0]), jnp.array([0.2, 1.3]))
+    saveat = dfx.SaveAt(steps=True, solver_state=True)
+    nsteps = 1000
+    sol = _solve(L, y0, nsteps * 0.2, 0.2, solver=cls(), saveat=saveat,
+                 max_steps=nsteps)
+    assert sol.result == dfx.RESULTS.successful
+    qs, qdots = sol.ys
+    p_phi = jax.vmap(lambda q, v: lagrax.momenta(L, q, v, 0.0))(qs, qdots)[:, 1]
+    p_phi0 = float(lagrax.momenta(L, *y0, 0.0)[1])
+    eps = np.finfo(np.float64).eps
+    bound = 10 * np.sqrt(nsteps) * eps * abs(p_phi0)
+    assert np.max(np.abs(np.asarray(p_phi) - p_phi0)) < bound
+    assert abs(float(sol.solver_state[0][1]) - p_phi0) < bound
+    # The energy moves at truncation level meanwhile: the step is not trivially small.
+    energy = jax.vmap(lambda q, v: lagrax.energy(L, q, v, 0.0))(qs, qdots)
+    assert float(jnp.max(jnp.abs(energy - energy[0]))) > 1e3 * bound
+
+
+@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+def test_gauss_legendre_time_reversible(cls):
+    y0 = (jnp.array([2.5]), jnp.array([0.0]))
+    fwd = _solve(PENDULUM, y0, 5.0, 0.25, solver=cls())
+    y1 = jax.tree_util.tree_map(lambda x: x[-1], fwd.ys)
+    back = _solve(PENDULUM, y1, 0.0, -0.25, t0=5.0, solver=cls())
+    assert back.result == dfx.RESULTS.successful
+    y0_back = jax.tree_util.tree_map(lambda x: x[-1], back.ys)
+    assert tree_allclose(y0_back, y0, rtol=0, atol=1e-10)
+    assert not tree_allclose(y1, y0, rtol=0, atol=1e-2)
+
+
+@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+def test_gauss_legendre_vmap_jit_match_a_python_loop(cls):
+    ts = jnp.linspace(0.0, 3.0, 7)
+    q0s = jnp.array([[0.5, 0.1], [1.5, -0.3], [2.5, 0.0]])
+    L = double_pendulum(m2=2.0)
+
+    def one(q0):
+        y0 = (q0, jnp.zeros(2))
+        return _solve(L, y0, 3.0, 0.05, solver=cls(), saveat=dfx.SaveAt(ts=ts))
+
+    sols = jax.jit(jax.vmap(one))(q0s)
+    assert sols.ys[0].shape == (3, 7, 2)
+    assert np.all(np.asarray(sols.result == dfx.RESULTS.successful))
+    for i, q0 in enumerate(q0s):
+        assert tree_allclose(
+            jax.tree_util.tree_map(lambda x: x[i], sols.ys), one(q0).ys,
+            rtol=1e-12, atol=1e-12,
+        )
+
+
+@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+def test_gauss_legendre_failures_per_lane(cls):
+    y0 = (jnp.array([1.0]), jnp.array([0.0]))
+    sol = _solve(PENDULUM, y0, 1.0, 0.1, solver=cls(root_find_max_steps=1),
+                 throw=False)
+    assert sol.result == dfx.RESULTS.nonlinear_max_steps_reached
+
+    def L(q, qdot, t):  # NaN for q < 0
+        return 0.5 * qdot[0] ** 2 - 1.0 / jnp.sqrt(q[0]) + 0.0 * q[0]
+
+    @jax.jit
+    @jax.vmap
+    def batch(v0):
+        y0 = (jnp.array([1.0]), jnp.array([v0]))
+        return _solve(L, y0, 2.0, 0.5, solver=cls(), throw=False)
+
+    sols = batch(jnp.array([0.1, -5.0, 0.2]))
+    ok = np.asarray(sols.result == dfx.RESULTS.successful)
+    assert ok.tolist() == [True, False, True]
+    assert np.all(np.isfinite(np.asarray(sols.ys[0][0])))
+    assert np.all(np.isfinite(np.asarray(sols.ys[0][2])))
+
+
+@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+def test_gauss_legendre_force_and_time_dependence_converge(cls):
+    c = 0.3
+
+    def L(q, qdot, t):
+        r = 1.0 + 0.1 * jnp.sin(t)
+        return 0.5 * r**2 * qdot[0] ** 2 + r * jnp.cos(q[0])
+
+    def force(q, qdot, t):
+        return -c * qdot
+
+    y0 = (jnp.array([1.0]), jnp.array([0.0]))
+    ref = _reference(L, y0, 3.0, force=force)
+    order = cls().order(None)
+    errs = []
+    for h in (0.3, 0.15):
+        sol = _solve(L, y0, 3.0, h, solver=cls(), force=force)
+        errs.append(max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(sol.ys, ref.ys)))
+    assert errs[1] > 1e-12, errs
+    assert 0.6 * 2**order < errs[0] / errs[1] < 1.5 * 2**order, errs
+
+
+def test_root_finder_argument():
+    y0 = (jnp.array([2.5]), jnp.array([0.0]))
+    default = _solve(PENDULUM, y0, 2.0, 0.1)
+    tight = _solve(
+        PENDULUM, y0, 2.0, 0.1,
+        solver=lagrax.VariationalMidpoint(
+            root_finder=optx.Newton(rtol=1e-12, atol=1e-12)
+        ),
+    )
+    assert tight.result == dfx.RESULTS.successful
+    assert tree_allclose(default.ys, tight.ys, rtol=0, atol=1e-13)
+    # A root finder given as an argument is the one used: chord iterations (Jacobian
+    # frozen) with a loose tolerance give a different, still converged, answer.
+    loose = _solve(
+        PENDULUM, y0, 2.0, 0.1,
+        solver=lagrax.GaussLegendre4(root_finder=optx.Chord(rtol=1e-3, atol=1e-3)),
+        saveat=dfx.SaveAt(t1=True, solver_state=True),
+    )
+    assert loose.result == dfx.RESULTS.successful
+    ref = _solve(PENDULUM, y0, 2.0, 0.1, solver=lagrax.GaussLegendre4())
+    assert not tree_allclose(loose.ys, ref.ys, rtol=0, atol=1e-14)
+    assert tree_allclose(loose.ys, ref.ys, rtol=0, atol=1e-3)
