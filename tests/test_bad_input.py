@@ -14,6 +14,7 @@ import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import lagrax
@@ -418,34 +419,34 @@ OTHER += [
         "force",
     ),
     case(
-        "VariationalMidpoint-rtol-negative",
-        lambda: lagrax.VariationalMidpoint(rtol=-1e-8),
-        "rtol",
+        "VariationalMidpoint-root_finder-str",
+        lambda: lagrax.VariationalMidpoint(root_finder="newton"),
+        "root_finder",
     ),
     case(
-        "VariationalMidpoint-rtol-above-one",
-        lambda: lagrax.VariationalMidpoint(rtol=2.0),
-        "rtol",
+        "VariationalMidpoint-root_finder-minimiser",
+        lambda: lagrax.VariationalMidpoint(root_finder=optx.BFGS(1e-8, 1e-8)),
+        "root_finder",
     ),
     case(
-        "VariationalMidpoint-atol-str",
-        lambda: lagrax.VariationalMidpoint(atol="tight"),
-        "atol",
+        "VariationalMidpoint-root_find_max_steps-zero",
+        lambda: lagrax.VariationalMidpoint(root_find_max_steps=0),
+        "root_find_max_steps",
     ),
     case(
-        "VariationalMidpoint-max_newton_steps",
-        lambda: lagrax.VariationalMidpoint(max_newton_steps=0),
-        "max_newton_steps",
+        "VariationalMidpoint-root_find_max_steps-float",
+        lambda: lagrax.VariationalMidpoint(root_find_max_steps=2.5),
+        "root_find_max_steps",
     ),
     case(
-        "VariationalMidpoint-max_newton_steps-float",
-        lambda: lagrax.VariationalMidpoint(max_newton_steps=2.5),
-        "max_newton_steps",
+        "GaussLegendre4-root_finder",
+        lambda: lagrax.GaussLegendre4(root_finder=1e-8),
+        "root_finder",
     ),
     case(
-        "VariationalMidpoint-linear_solver",
-        lambda: lagrax.VariationalMidpoint(linear_solver="lu"),
-        "linear_solver",
+        "GaussLegendre6-root_find_max_steps",
+        lambda: lagrax.GaussLegendre6(root_find_max_steps=-1),
+        "root_find_max_steps",
     ),
     case(
         "VariationalMidpoint-plain-ODETerm",
