@@ -286,6 +286,11 @@ PERIOD += [
         "solver",
     ),
     case(
+        "period-solver-implicit",
+        lambda: lagrax.period(PENDULUM, 1.0, solver=dfx.Kvaerno5()),
+        "solver",
+    ),
+    case(
         "period-solver-class",
         lambda: lagrax.period(PENDULUM, 1.0, solver=dfx.Dopri8),
         "solver",

@@ -8,6 +8,7 @@ that name a cause: a coordinate singularity on the path, a well that is not
 mirror-symmetric for method "quarter".
 """
 
+import diffrax as dfx
 import hypothesis
 import hypothesis.strategies as st
 import jax
@@ -174,3 +175,21 @@ def test_estimate_bounds_the_error_on_random_wells(a, b):
     true = np.abs(T[ok] / np.asarray(ref)[usable][ok] - 1)
     assert np.all(est[ok] >= true)
     assert np.all(true <= 1e-11)
+
+
+@pytest.mark.parametrize(
+    "solver, tol, bound",
+    [
+        (dfx.Tsit5(), 1e-10, 1e-9),
+        (dfx.Dopri5(), 1e-10, 1e-9),
+        (dfx.Dopri8(), 1e-12, 1e-11),
+    ],
+)
+def test_every_explicit_tableau_runs_the_kernel(solver, tol, bound):
+    # FSAL tableaux whose last stage weighs in the error estimate (Tsit5, Dopri5) as
+    # well as Dopri8, whose does not.
+    a = jnp.linspace(0.1, 3.0, 32)
+    res = lagrax.sweep_periods(PENDULUM, a, solver=solver, rtol=tol, atol=tol)
+    assert np.all(np.asarray(res.status) == SUCCESS)
+    true = _check_bound(res, pendulum.period(a), spread=1e3)
+    assert true.max() <= bound

@@ -29,6 +29,7 @@ FIXED = {
     11: "nonfinite_period",
     12: "tolerance_not_met",
     13: "coordinate_singularity",
+    14: "not_symmetric",
 }
 
 
