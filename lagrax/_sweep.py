@@ -973,9 +973,11 @@ def sweep_periods(
     sweep is solved a second time, in the same queue, at 10x looser tolerances (for
     `"matched"`, from the far turning point moved across the band within which
     float64 rounding of $L$ leaves it undetermined), and the estimate is 3 times the
-    relative difference plus 64 ulps. Validated against exact periods (pendulum,
-    cycloid, asymmetric well against `quadrature_period`, random wells): never below
-    the true error, ~25x above it at the median. A lane whose estimate exceeds
+    relative difference plus 64 ulps. Validated with `Dopri8` (the default) against
+    exact periods (pendulum, cycloid, asymmetric well against `quadrature_period`,
+    random wells): never below the true error, ~25x above it at the median. With
+    lower-order pairs (`Tsit5`, `Dopri5`) its calibration is not established: it was
+    measured below the true error on some lanes (0.47x). A lane whose estimate exceeds
     100 rtol gets status `tolerance_not_met` and no number. The second solve costs
     about 0.8x the first; `error_estimate=False` skips it.
 
