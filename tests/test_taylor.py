@@ -15,7 +15,7 @@ from lagrax.systems import asymmetric_well, cycloid, driven_pendulum
 K = 20
 
 
-def _reference(accel, s, x, v, p):
+def _reference(accel, s, x, v, p, K=K):
     """Normalized coefficients of (s, x, v) per lane by K calls of `jet`: (K + 1, 3, W)."""
 
     def one(s, x, v, p):
@@ -33,7 +33,7 @@ def _reference(accel, s, x, v, p):
     return np.asarray(jax.jit(jax.vmap(one, out_axes=-1))(s, x, v, p))
 
 
-def _check(accel, s, x, v, p, rtol=1e-13, reference=None):
+def _check(accel, s, x, v, p, rtol=1e-13, reference=None, K=K):
     xs, vs, as_ = jax.jit(taylor_coefficients(accel, K, jnp.float64))(s, x, v, p)
     assert xs.shape == vs.shape == (K + 1, x.shape[0])
     assert as_.shape == (K, x.shape[0])
@@ -43,7 +43,7 @@ def _check(accel, s, x, v, p, rtol=1e-13, reference=None):
     np.testing.assert_allclose(xs[1:], vs[:-1] / k1, rtol=1e-15)
     # `jet` through lagrax's autodiff jaxpr takes minutes to trace and compile at
     # order 20; the hand-derived equation of motion is the same function.
-    ref = _reference(reference or accel, s, x, v, p)
+    ref = _reference(reference or accel, s, x, v, p, K=K)
     for ours, theirs in ((xs, ref[:, 1]), (vs, ref[:, 2])):
         # Per order, relative to that order's largest coefficient over the lanes.
         scale = np.max(np.abs(theirs), axis=1, keepdims=True)
@@ -117,8 +117,13 @@ def test_driven_pendulum_explicit_time():
     _check(_lagrange_accel(L), s, x, v, q0, reference=hand)
 
 
-@pytest.mark.slow  # jet at order 20 compiles for minutes on 2 cores
-def test_elementary_functions():
+# Order 20 (slow: jet compiles for minutes on 2 cores) and order 4, which runs every
+# recurrence in the default suite.
+ORDERS = [pytest.param(K, marks=pytest.mark.slow), 4]
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_elementary_functions(order):
     """The nonlinear recurrences one by one, against `jet`, with a pytree of per-lane
     parameters."""
 
@@ -150,21 +155,21 @@ def test_elementary_functions():
     v = jnp.array([0.2, -0.1, 0.05, 0.3])
     # `jet` has no rule for tan.
     reference = lambda s, x, v, p: accel(s, x, v, p, lambda u: jnp.sin(u) / jnp.cos(u))
-    _check(accel, s, jnp.zeros(W), v, p, rtol=1e-12, reference=reference)
+    _check(accel, s, jnp.zeros(W), v, p, rtol=1e-12, reference=reference, K=order)
 
 
-@pytest.mark.slow  # jet at order 20 compiles for minutes on 2 cores
-def test_atan():
+@pytest.mark.parametrize("order", ORDERS)
+def test_atan(order):
     def accel(s, x, v, c):
         return jnp.arctan(c + x) * v
 
-    xs, vs, _ = taylor_coefficients(accel, K, jnp.float64)(
+    xs, vs, _ = taylor_coefficients(accel, order, jnp.float64)(
         jnp.zeros(2), jnp.zeros(2), jnp.array([0.3, -0.2]), jnp.array([0.2, 1.4])
     )
     # The same function through atan2, which `jet` knows.
     f = lambda s, x, v, c: jnp.arctan2(c + x, 1.0) * v
     lanes = jnp.zeros(2), jnp.zeros(2), jnp.array([0.3, -0.2]), jnp.array([0.2, 1.4])
-    ref = _reference(f, *lanes)
+    ref = _reference(f, *lanes, K=order)
     np.testing.assert_allclose(xs, ref[:, 1], rtol=1e-12, atol=1e-16)
 
 
