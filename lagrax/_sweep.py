@@ -154,25 +154,38 @@ class _Pass(eqx.Module):
     max_steps: int = eqx.field(static=True)
 
 
+def _release(Lp, q0):
+    """What one lane knows at its release point (a scalar `q0`): whether it can start
+    (finite, a regular mass, a non-zero acceleration), and its own units: lengths
+    `Qs` = |q0| (1 at 0), times `tau` = sqrt(Qs / |q̈0|), `sigma` the sign of q̈0."""
+    zero = jnp.zeros((), q0.dtype)
+    finite = jnp.isfinite(q0)
+    q0 = jnp.where(finite, q0, 1.0)
+    a0, (M0, ok0) = _accelerations(Lp, q0[None], zero[None], zero)
+    a0, M0 = a0[0], M0[0, 0]
+    start_ok = ok0 & jnp.isfinite(a0)
+    moving = a0 != 0
+    valid = finite & start_ok & moving
+    Qs = jnp.where(q0 != 0, jnp.abs(q0), 1.0)
+    a0s = jnp.where(valid, a0, -1.0)
+    return dict(
+        q0=q0,
+        finite=finite,
+        start_ok=start_ok,
+        moving=moving,
+        valid=valid,
+        M0=M0,
+        a0s=a0s,
+        Qs=Qs,
+        tau=jnp.sqrt(Qs / jnp.abs(a0s)),
+        sigma=jnp.sign(a0s),
+    )
+
+
 def _lane_scales(L, q0, consts):
-    """Release-point quantities of each lane: validity and the lane's own units."""
-    dtype = q0.dtype
-    zero = jnp.zeros((), dtype)
-
-    def one(q0):
-        finite = jnp.isfinite(q0)
-        q0 = jnp.where(finite, q0, 1.0)
-        a0, (M0, ok0) = _accelerations(
-            lambda q, qd, t: L(q, qd, t, *consts), q0[None], zero[None], zero
-        )
-        a0, M0 = a0[0], M0[0, 0]
-        valid = finite & ok0 & jnp.isfinite(a0) & (a0 != 0)
-        Qs = jnp.where(q0 != 0, jnp.abs(q0), 1.0)
-        a0s = jnp.where(valid, a0, -1.0)
-        tau = jnp.sqrt(Qs / jnp.abs(a0s))
-        return valid, Qs, tau, jnp.sign(a0s)
-
-    return jax.vmap(one)(q0)
+    """`_release` of each lane: validity and the lane's own units."""
+    r = jax.vmap(lambda q0: _release(lambda q, qd, t: L(q, qd, t, *consts), q0))(q0)
+    return r["valid"], r["Qs"], r["tau"], r["sigma"]
 
 
 def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
@@ -456,16 +469,10 @@ def _finish(L, consts, q0, targets, kinds, rtols, out, energy_tol):
     Lp = lambda q, qd, t: L(q, qd, t, *consts)
 
     def one(q0, target, kind, rtol, sigma, raw, s_e, x_e, v_e):
-        finite_q0 = jnp.isfinite(q0)
-        q0 = jnp.where(finite_q0, q0, 1.0)
-        a0, (M0, ok0) = _accelerations(Lp, q0[None], zero[None], zero)
-        a0, M0 = a0[0], M0[0, 0]
-        start_ok = ok0 & jnp.isfinite(a0)
-        moving = a0 != 0
-        valid = finite_q0 & start_ok & moving
-        Qs = jnp.where(q0 != 0, jnp.abs(q0), 1.0)
-        a0s = jnp.where(valid, a0, -1.0)
-        tau = jnp.sqrt(Qs / jnp.abs(a0s))
+        r = _release(Lp, q0)
+        q0, finite_q0 = r["q0"], r["finite"]
+        start_ok, moving = r["start_ok"], r["moving"]
+        M0, a0s, Qs, tau = r["M0"], r["a0s"], r["Qs"], r["tau"]
         q_end, qdot_end, t_end = q0 + Qs * x_e, (Qs / tau) * v_e, tau * s_e
         h0, size0 = _jacobi(Lp, q0[None], zero[None], zero)
         h1, size1 = _jacobi(Lp, q_end[None], qdot_end[None], t_end)
