@@ -235,3 +235,46 @@ def test_unknown_primitive():
     )
     xs, _, _ = coeffs(jnp.zeros(1), jnp.ones(1), jnp.zeros(1))
     assert np.isclose(xs[2, 0], 0.5 * float(jax.lax.erf(0.5)))
+
+
+def _dot_accel(s, x, v, q0):
+    u = jnp.stack([q0 + x, v])
+    return -jnp.dot(u, jnp.stack([jnp.sin(q0 + x), 0.1 * v]))
+
+
+def _mixed_accel(s, x, v, q0):
+    u = q0 + x
+    return (
+        jnp.exp(0.3 * u) * jnp.log(1.5 + u)
+        + jnp.sqrt(2.0 + u) * v
+        - jnp.tanh(u) / (2.0 + jnp.cos(u))
+        + jnp.maximum(u, 0.2) ** 3
+        + jnp.arctan(v) * jnp.sin(0.5 * s)
+    )
+
+
+@pytest.mark.parametrize(
+    "accel",
+    [
+        _lagrange_accel(lambda q, qd, t: 0.5 * qd[0] ** 2 + jnp.cos(q[0])),
+        _lagrange_accel(cycloid.lagrangian()),
+        _dot_accel,
+        _mixed_accel,
+    ],
+)
+def test_unrolled_matches_loop(accel):
+    """The straight-line (unrolled) coefficients equal the loop's, which the tests
+    above check against `jet`: same recurrences, exactly triangular sums."""
+    s, x, v, q0 = _lanes(jnp.linspace(0.2, 1.4, 7), jnp.linspace(-0.3, 0.4, 7))
+    s = s + 0.3
+    order = 9
+    loop = jax.jit(taylor_coefficients(accel, order, jnp.float64))(s, x, v, q0)
+    flat = jax.jit(taylor_coefficients(accel, order, jnp.float64, unrolled=True))(
+        s, x, v, q0
+    )
+    for ours, theirs in zip(flat, loop):
+        assert len(ours) == theirs.shape[0]
+        ours = np.stack([np.broadcast_to(c, theirs.shape[1:]) for c in ours])
+        scale = np.max(np.abs(theirs), axis=1, keepdims=True)
+        err = np.abs(ours - np.asarray(theirs)) / np.where(scale > 0, scale, 1.0)
+        assert np.max(err) < 1e-13, np.max(err, axis=1)
