@@ -33,6 +33,7 @@ from ._results import (
 )
 from ._simulate import simulate as simulate, vector_field as vector_field
 from ._sweep import sweep_periods as sweep_periods, SweepResult as SweepResult
+from ._taylor import Taylor as Taylor
 from ._term import LagrangianTerm as LagrangianTerm
 from ._transform import reparametrize as reparametrize
 from ._variational import VariationalMidpoint as VariationalMidpoint

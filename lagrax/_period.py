@@ -75,16 +75,19 @@ class _NoPeriodError(ValueError, RuntimeError):
 def _check_options(L, dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method):
     """The checks `period` and `sweep_periods` share, run once per call."""
     check_one_dof(L, dtype)
+    from ._sweep import stepper
+    from ._taylor import Taylor
+
     check_instance(
         solver,
         "solver",
-        dfx.AbstractERK,
+        (dfx.AbstractERK, Taylor),
         "an adaptive explicit Runge–Kutta diffrax solver (the period kernel steps "
-        "through its Butcher tableau), e.g. diffrax.Dopri8() or diffrax.Tsit5()",
+        "through its Butcher tableau), e.g. diffrax.Dopri8() or diffrax.Tsit5(), or "
+        "lagrax.Taylor()",
     )
-    from ._sweep import explicit_tableau
 
-    if explicit_tableau(solver) is None:
+    if stepper(solver) is None:
         raise TypeError(
             "`solver` must be an adaptive explicit Runge–Kutta diffrax solver (with an "
             f"embedded error estimate), e.g. diffrax.Dopri8(); got {describe(solver)}."
@@ -215,12 +218,12 @@ def period(
     rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    from ._sweep import explicit_tableau, one_lane
+    from ._sweep import one_lane, stepper
 
     T, status, estimate = one_lane(
         L,
         q0,
-        explicit_tableau(solver),
+        stepper(solver),
         method,
         max_steps,
         rtol,

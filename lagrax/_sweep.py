@@ -42,6 +42,7 @@ from jaxtyping import Array, Float, Int
 from ._checks import as_real_array, check_callable, check_devices, positive_int
 from ._mechanics import _accelerations, _jacobi
 from ._period import _check_options
+from ._taylor import Taylor, taylor_coefficients
 from ._results import (
     COORDINATE_SINGULARITY,
     ENERGY_DRIFT,
@@ -100,6 +101,36 @@ def explicit_tableau(solver) -> _Tableau | None:
     return _Tableau(a, b, e, c, fsal, order)
 
 
+def stepper(solver) -> "_Tableau | Taylor | None":
+    """What the kernel steps with: a `Taylor` as it is, a diffrax ERK's tableau."""
+    if isinstance(solver, Taylor):
+        return solver
+    return explicit_tableau(solver)
+
+
+def _horner(cs, h):
+    out = cs[-1]
+    for c in cs[-2::-1]:
+        out = out * h + c
+    return out
+
+
+def _taylor_step(spec, coeffs, accel, s, x, v, h_req, free, rtol, atol, cap):
+    """One Taylor step of every lane: of its own length (`free`) or of length `h_req`
+    (an event's trial). Returns the state at s + h, the acceleration there, and h."""
+    K = spec.order
+    xs, vs, _ = coeffs(s, x, v)
+    tol = atol + rtol * jnp.maximum(jnp.abs(x), jnp.abs(v))
+    nK = jnp.maximum(jnp.abs(xs[K]), jnp.abs(vs[K]))
+    nK1 = jnp.maximum(jnp.abs(xs[K - 1]), jnp.abs(vs[K - 1]))
+    rho = lambda n, j: jnp.where(n > 0, (tol / jnp.where(n > 0, n, 1.0)) ** (1.0 / j), jnp.inf)
+    h_jz = np.exp(-0.7 / (K - 1)) * jnp.minimum(rho(nK, K), rho(nK1, K - 1))
+    h = jnp.where(free, jnp.minimum(h_jz, jnp.minimum(cap, spec.max_step)), h_req)
+    h = jax.lax.stop_gradient(h)
+    x1, v1 = _horner(xs, h), _horner(vs, h)
+    return x1, v1, accel(s + h, x1, v1), h
+
+
 def _combine(coeffs, ks):
     """sum_j coeffs[j] ks[j], skipping exact zeros (the tableaux are sparse)."""
     out = None
@@ -148,7 +179,7 @@ class _Pass(eqx.Module):
     `legs`: legs per lane (2: through the turning point and back, for "full").
     """
 
-    tab: _Tableau
+    tab: "_Tableau | Taylor"
     legs: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
@@ -203,7 +234,8 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
     # diffrax.PIDController's defaults (I-controller): the same constants and rule.
     ctrl = dfx.PIDController(rtol=0.0, atol=0.0)
     safety, fmin, fmax = ctrl.safety, ctrl.factormin, ctrl.factormax
-    expo = 1.0 / tab.error_order
+    taylor = isinstance(tab, Taylor)
+    expo = 1.0 / (tab.order if taylor else tab.error_order)
 
     def accel_one(q0, Qs, tau, s, x, v):
         Vs, As = Qs / tau, Qs / tau**2
@@ -269,11 +301,24 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
         def accel(si, xi, vi):
             return accel_lanes(lane["q0"], lane["Qs"], lane["tau"], si, xi, vi)
 
-        x1, v1, a1, ex, ev = _rk_step(tab, accel, s, x, v, a, h)
         rtol, atol, kind = lane["rtol"], lane["atol"], lane["kind"]
-        sx = atol + rtol * jnp.maximum(jnp.abs(x), jnp.abs(x1))
-        sv = atol + rtol * jnp.maximum(jnp.abs(v), jnp.abs(v1))
-        err = jnp.sqrt(0.5 * ((ex / sx) ** 2 + (ev / sv) ** 2))
+        if taylor:
+            p = (lane["q0"], lane["Qs"], lane["tau"])
+            coeffs = taylor_coefficients(
+                lambda s, x, v, p: accel_one(*p, s, x, v), tab.order, dtype, True
+            )
+            cap = jnp.maximum(lane["limit"] - s, dtmin)
+            x1, v1, a1, h = _taylor_step(
+                tab, lambda s, x, v: coeffs(s, x, v, p), accel, s, x, v, h,
+                ~lane["locating"], rtol, atol, cap,
+            )
+            # Chosen before it is taken: never rejected; a non-finite step fails.
+            err = jnp.where(jnp.isfinite(h), 0.0, jnp.nan)
+        else:
+            x1, v1, a1, ex, ev = _rk_step(tab, accel, s, x, v, a, h)
+            sx = atol + rtol * jnp.maximum(jnp.abs(x), jnp.abs(x1))
+            sv = atol + rtol * jnp.maximum(jnp.abs(v), jnp.abs(v1))
+            err = jnp.sqrt(0.5 * ((ex / sx) ** 2 + (ev / sv) ** 2))
         finite = jnp.isfinite(err) & jnp.isfinite(x1) & jnp.isfinite(v1)
         finite = finite & jnp.isfinite(a1)
         accept = finite & (err <= 1.0)
@@ -283,7 +328,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
             jnp.where(accept, 1.0, fmin),
             jnp.where(accept, fmax, safety),
         )
-        factor = jnp.where(finite, factor, fmin)
+        factor = jnp.where(finite, factor, 0.0 if taylor else fmin)
         h_next = jax.lax.stop_gradient(h * factor)
         g1 = g_of(lane, x1, v1, a1)
         locating = lane["locating"]
@@ -688,7 +733,7 @@ def _far_turning_point(L, consts, q0, q_m):
 class _Method(eqx.Module):
     """A period method as passes of the kernel."""
 
-    tab: _Tableau
+    tab: "_Tableau | Taylor"
     method: str = eqx.field(static=True)
     width: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
@@ -1041,7 +1086,7 @@ def sweep_periods(
     devices = check_devices(jax.devices() if devices is None else devices)
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
-    tab = explicit_tableau(solver)
+    tab = stepper(solver)
     dtype = q0.dtype
     cfg = _Method(tab, method, chunk_size, max_steps, bool(error_estimate))
     L_c, consts = closure_converted(L, dtype)

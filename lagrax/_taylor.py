@@ -39,6 +39,7 @@ Design, measured (`benchmarks/taylor_coefficients.py`):
 
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -46,7 +47,7 @@ from jax import lax
 from jax.extend import core as jex_core
 
 
-__all__ = ["taylor_coefficients"]
+__all__ = ["Taylor", "taylor_coefficients"]
 
 # Primitives whose output is locally constant (zero derivative): decided at order 0.
 _PIECEWISE_CONSTANT = frozenset(
@@ -1048,3 +1049,48 @@ def taylor_coefficients(
         return _coefficients(prog, K, s, x, v, leaves)
 
     return coeffs
+
+
+class Taylor(eqx.Module):
+    r"""A Taylor integrator (heyoka's method) for `period` and `sweep_periods`.
+
+    Each step expands the trajectory to order $K$ about the current state with the
+    coefficients of `taylor_coefficients` (recurrences from the acceleration's jaxpr,
+    one transcendental call per node per step), takes the step length from the last
+    two coefficients (Jorba and Zou's rule, as heyoka.py does):
+
+    $$h = e^{-0.7/(K-1)} \min_{j \in \{K-1, K\}}
+    \left(\frac{\varepsilon}{\lVert (x_j, v_j)\rVert_\infty}\right)^{1/j},\qquad
+    \varepsilon = \text{atol} + \text{rtol}\,\lVert (x_0, v_0)\rVert_\infty,$$
+
+    (never longer than `max_step` in the lane's units of time, a fraction of its
+    small-amplitude period, so that no event can be stepped over), and evaluates the
+    polynomials at $h$. Nothing is rejected: the step is chosen before it is taken.
+    Events are located by re-evaluating the step from the same base with Newton or
+    a secant on the step length, as for Runge–Kutta solvers.
+
+    Only for the period kernel (not a diffrax solver). The acceleration's jaxpr must
+    consist of primitives with a recurrence (`taylor_coefficients` lists them):
+    others raise `NotImplementedError` naming the primitive at the first call; use a
+    diffrax solver (`diffrax.Dopri8()`) there.
+
+    **Arguments:**
+
+    - `order`: $K$, the degree of the polynomials (default 20: the order heyoka.py
+        picks for float64 at its default tolerance; $K \geq 2$).
+    - `max_step`: the longest step in the lane's units of time, $\sqrt{|q_0| /
+        |\ddot q_0|}$ (default 2, a third of a small oscillation's period).
+    """
+
+    order: int = eqx.field(static=True, default=20)
+    max_step: float = eqx.field(static=True, default=2.0)
+
+    def __check_init__(self):
+        if not isinstance(self.order, int) or isinstance(self.order, bool):
+            raise TypeError(f"`order` must be an int >= 2; got {self.order!r}.")
+        if self.order < 2:
+            raise ValueError(f"`order` must be at least 2; got {self.order}.")
+        if not (isinstance(self.max_step, (int, float)) and 0 < self.max_step < np.inf):
+            raise ValueError(
+                f"`max_step` must be a positive finite number; got {self.max_step!r}."
+            )
