@@ -14,9 +14,10 @@ after the other):
 - the naive diffrax baseline: hand-written `-sin θ`, Dopri8, `Event` with Newton root
   finding, one unsorted `jit(vmap(diffeqsolve))` batch;
 - lagrax `sweep_periods`, methods "quarter", "half" and "matched" (the default), at
-  rtol = atol = 1e-12 … 1e-14, with the per-lane error estimate off (the kernel alone)
-  and on (the default), on one core (one JAX device, `taskset` to core 0) and on the
-  whole machine (one JAX device per core).
+  rtol = atol = 1e-12 … 1e-14, with `Dopri8` (the default solver) and `lagrax.Taylor()`
+  (order 20), with the per-lane error estimate off (the kernel alone) and on (the
+  default), on one core (one JAX device, `taskset` to core 0) and on the whole
+  machine (one JAX device per core).
 
 For every lagrax row it prints periods/s, max relative error, steps per lane, the
 useful fraction of lane-steps, ns per lane-step, and the ceiling: the time of the
@@ -281,20 +282,33 @@ def work_jax(args):
     else:
         ceiling_ns = None
 
+    dopri8, taylor = dfx.Dopri8(), lagrax.Taylor()
     configs = [
-        ("quarter", 1e-12, False),
-        ("quarter", 1e-13, False),
-        ("half", 1e-13, False),
-        ("half", 1e-14, False),
-        ("matched", 1e-12, False),
-        ("matched", 1e-13, False),
-        ("matched", 1e-13, True),
+        ("quarter", 1e-12, False, dopri8),
+        ("quarter", 1e-13, False, dopri8),
+        ("half", 1e-13, False, dopri8),
+        ("half", 1e-14, False, dopri8),
+        ("matched", 1e-12, False, dopri8),
+        ("matched", 1e-13, False, dopri8),
+        ("matched", 1e-13, True, dopri8),
+        ("quarter", 1e-13, False, taylor),
+        ("quarter", 1e-14, False, taylor),
+        ("half", 1e-14, False, taylor),
+        ("matched", 1e-13, False, taylor),
+        ("matched", 1e-14, False, taylor),
+        ("matched", 1e-14, True, taylor),
     ]
     if args.quick:
         configs = [c for c in configs if c[1] == 1e-13]
-    for method, tol, estimate in configs:
+    for method, tol, estimate, solver in configs:
         run = lambda: lagrax.sweep_periods(
-            L, a, method=method, rtol=tol, atol=tol, error_estimate=estimate
+            L,
+            a,
+            method=method,
+            rtol=tol,
+            atol=tol,
+            error_estimate=estimate,
+            solver=solver,
         )
         jax.clear_caches()
         t0 = time.perf_counter()
@@ -304,9 +318,10 @@ def work_jax(args):
         steps = float(np.mean(np.asarray(res.num_steps)))
         executed = float(res.lane_steps_executed)
         label = "" if estimate else ", no estimate"
+        name = "Taylor-20" if solver is taylor else "Dopri8"
         rows.append(
             _row(
-                f"lagrax {method} rtol {tol:g}{label}, {where}",
+                f"lagrax {name} {method} rtol {tol:g}{label}, {where}",
                 res.periods,
                 exact,
                 sec,
@@ -314,7 +329,7 @@ def work_jax(args):
                 steps_per_lane=steps,
                 useful_fraction=float(res.useful_fraction),
                 ns_per_lane_step=sec / executed * 1e9 * args.devices,
-                ceiling_ns_per_lane_step=ceiling_ns,
+                ceiling_ns_per_lane_step=ceiling_ns if solver is dopri8 else None,
                 max_error_estimate=(
                     None
                     if res.error_estimate is None
@@ -329,6 +344,7 @@ def work_gpu(args):
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    import diffrax as dfx
     import jax.numpy as jnp
 
     import lagrax
@@ -341,10 +357,20 @@ def work_gpu(args):
         a_np = _amplitudes(n)
         a = jnp.asarray(a_np)
         exact = _exact(a_np)
-        for method in ("quarter", "matched"):
+        for method, solver in (
+            ("quarter", dfx.Dopri8()),
+            ("matched", dfx.Dopri8()),
+            ("quarter", lagrax.Taylor()),
+            ("matched", lagrax.Taylor()),
+        ):
             for width in (4096, 65536):
                 run = lambda: lagrax.sweep_periods(
-                    L, a, method=method, chunk_size=width, error_estimate=False
+                    L,
+                    a,
+                    method=method,
+                    chunk_size=width,
+                    error_estimate=False,
+                    solver=solver,
                 )
                 t0 = time.perf_counter()
                 jax.block_until_ready(run())
@@ -352,7 +378,8 @@ def work_gpu(args):
                 res, sec = _best(run, 3)
                 rows.append(
                     _row(
-                        f"lagrax {method} n={n} width={width} on {device}",
+                        f"lagrax {type(solver).__name__} {method} n={n} "
+                        f"width={width} on {device}",
                         res.periods,
                         exact,
                         sec,

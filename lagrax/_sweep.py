@@ -42,7 +42,6 @@ from jaxtyping import Array, Float, Int
 from ._checks import as_real_array, check_callable, check_devices, positive_int
 from ._mechanics import _accelerations, _jacobi
 from ._period import _check_options
-from ._taylor import Taylor, taylor_coefficients
 from ._results import (
     COORDINATE_SINGULARITY,
     ENERGY_DRIFT,
@@ -57,6 +56,7 @@ from ._results import (
     SUCCESS,
     TOLERANCE_NOT_MET,
 )
+from ._taylor import Taylor, taylor_coefficients
 
 
 # Raw outcomes of the loop, refined into statuses by the post-pass.
@@ -321,8 +321,17 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
             )
             cap = jnp.maximum(lane["limit"] - s, dtmin)
             x1, v1, a1, h = _taylor_step(
-                tab, lambda s, x, v: coeffs(s, x, v, p), accel, s, x, v, h,
-                ~lane["locating"], rtol, atol, cap,
+                tab,
+                lambda s, x, v: coeffs(s, x, v, p),
+                accel,
+                s,
+                x,
+                v,
+                h,
+                ~lane["locating"],
+                rtol,
+                atol,
+                cap,
             )
             # Chosen before it is taken: never rejected; a non-finite step fails.
             err = jnp.where(jnp.isfinite(h), 0.0, jnp.nan)

@@ -1,0 +1,135 @@
+"""`lagrax.Taylor` in the period kernel: accuracy against exact periods, every method,
+failing lanes, gradients and errors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lagrax
+from lagrax._results import NONFINITE_INPUT, NOT_OSCILLATING
+from lagrax.systems import cycloid, pendulum
+from tests.test_period import asymmetric, asymmetric_reference
+
+
+PENDULUM = pendulum.lagrangian()
+TAYLOR = lagrax.Taylor()
+AMPS = jnp.linspace(0.05, 3.05, 48)
+
+
+def _sweep(L, q0, **kw):
+    kw = dict(dict(solver=TAYLOR, rtol=1e-13, atol=1e-13, chunk_size=16), **kw)
+    return lagrax.sweep_periods(L, q0, **kw)
+
+
+@pytest.mark.parametrize("method", ["quarter", "half", "matched"])
+def test_pendulum_periods_exact(method):
+    res = _sweep(PENDULUM, AMPS, method=method, error_estimate=False)
+    assert np.all(np.asarray(res.status) == 0)
+    err = np.abs(np.asarray(res.periods) / np.asarray(pendulum.period(AMPS)) - 1)
+    # "half" integrates through the bottom of the swing (amplified near the
+    # separatrix, as with any solver); the others stay at the tolerance.
+    assert np.max(err) < (1e-11 if method == "half" else 1e-12), np.max(err)
+
+
+def test_first_step_from_rest_not_too_long():
+    """From rest the odd coefficients of x(s) vanish; a step length from the last two
+    orders then rested on one coefficient that crosses zero near q0 = 2.23692 (the
+    period was off by 1.8e-9 at rtol 1e-13). The last four orders keep it honest."""
+    q0 = jnp.linspace(2.2360, 2.2378, 9)
+    res = _sweep(PENDULUM, q0, method="quarter", error_estimate=False)
+    err = np.abs(np.asarray(res.periods) / np.asarray(pendulum.period(q0)) - 1)
+    assert np.max(err) < 1e-12, err
+
+
+def test_cycloid_isochronous_and_asymmetric_well():
+    L = cycloid.lagrangian()
+    q0 = jnp.linspace(0.3, 3.0, 12)  # theta from the bottom at pi: both sides
+    res = _sweep(L, jnp.pi + q0 - 1.5, method="matched")
+    T = np.asarray(res.periods)
+    assert np.all(np.asarray(res.status) == 0)
+    assert np.max(np.abs(T / (4 * np.pi) - 1)) < 1e-12
+    x0 = np.array([-0.6, -0.3, 0.2, 0.4])
+    res = _sweep(asymmetric, jnp.asarray(x0), method="matched")
+    ref = np.array([asymmetric_reference(x) for x in x0])
+    assert np.all(np.asarray(res.status) == 0)
+    assert np.max(np.abs(np.asarray(res.periods) / ref - 1)) < 1e-10
+
+
+def test_estimate_bounds_error():
+    res = _sweep(PENDULUM, AMPS, method="matched", error_estimate=True)
+    err = np.abs(np.asarray(res.periods) / np.asarray(pendulum.period(AMPS)) - 1)
+    est = np.asarray(res.error_estimate)
+    assert np.all(np.asarray(res.status) == 0)
+    assert np.all(est >= err), np.min(est / np.maximum(err, 1e-300))
+
+
+def test_failing_lanes_leave_others_alone():
+    good = jnp.array([0.4, 1.1, 2.5])
+    bad = jnp.array([0.4, jnp.nan, 1.1, 0.0, 2.5])
+    a = _sweep(PENDULUM, good, method="quarter", error_estimate=False)
+    b = _sweep(PENDULUM, bad, method="quarter", error_estimate=False)
+    st = np.asarray(b.status)
+    assert st[1] == NONFINITE_INPUT and st[3] == NOT_OSCILLATING
+    assert np.isnan(np.asarray(b.periods)[[1, 3]]).all()
+    np.testing.assert_array_equal(
+        np.asarray(b.periods)[[0, 2, 4]], np.asarray(a.periods)
+    )
+
+
+def test_period_and_gradient_match_exact():
+    q0 = jnp.asarray(1.3)
+    T = lagrax.period(PENDULUM, q0, solver=TAYLOR, method="quarter", rtol=1e-13)
+    assert abs(float(T) / float(pendulum.period(q0)) - 1) < 1e-12
+    f = lambda q: lagrax.period(
+        PENDULUM, q, solver=TAYLOR, method="quarter", rtol=1e-13, error_estimate=False
+    )
+    dT = jax.grad(f)(q0)
+    exact = jax.grad(pendulum.period)(q0)
+    assert abs(float(dT) / float(exact) - 1) < 1e-8
+
+
+@pytest.mark.slow  # ~25 s on one core; parameter gradients of the kernel are also
+# tested with Dopri8 in the default suite (tests/test_period.py).
+def test_gradient_with_respect_to_a_parameter():
+    def T_of_g(g):
+        L = pendulum.lagrangian(g=g)
+        res = lagrax.sweep_periods(
+            L,
+            jnp.array([0.7, 2.0]),
+            solver=TAYLOR,
+            method="quarter",
+            error_estimate=False,
+            chunk_size=2,
+        )
+        return jnp.sum(res.periods)
+
+    g = jnp.asarray(2.0)
+    exact = jax.grad(lambda g: jnp.sum(pendulum.period(jnp.array([0.7, 2.0]), g=g)))(g)
+    assert abs(float(jax.grad(T_of_g)(g)) / float(exact) - 1) < 1e-8
+
+
+def test_unsupported_primitive_is_named():
+    def L(q, qdot, t):
+        return 0.5 * qdot[0] ** 2 - jax.lax.erf(q[0]) * q[0]
+
+    with pytest.raises(NotImplementedError, match="erf"):
+        _sweep(L, jnp.array([0.5]), method="quarter", error_estimate=False)
+    # A diffrax solver handles the same Lagrangian.
+    res = lagrax.sweep_periods(L, jnp.array([0.5]), method="quarter")
+    assert int(res.status[0]) == 0
+
+
+@pytest.mark.parametrize(
+    "kwargs, exc",
+    [
+        (dict(order=1), ValueError),
+        (dict(order=2.5), TypeError),
+        (dict(order=True), TypeError),
+        (dict(max_step=0.0), ValueError),
+        (dict(max_step=float("inf")), ValueError),
+    ],
+)
+def test_bad_taylor_arguments(kwargs, exc):
+    with pytest.raises(exc, match="order" if "order" in kwargs else "max_step"):
+        lagrax.Taylor(**kwargs)
