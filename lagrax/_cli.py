@@ -36,7 +36,7 @@ import time
 from dataclasses import dataclass, field
 
 
-_SOLVERS = ("dopri8", "dopri5", "tsit5")
+_SOLVERS = ("dopri8", "dopri5", "tsit5", "taylor")
 _BLOCK_CHUNKS = 4  # chunks per device in a checkpoint/progress block
 _QUADRATURE_BLOCK = 2048  # release points per quadrature call (bounded memory)
 _PROBE_DOF = 6  # coordinates tried when telling the user how many L has
@@ -869,9 +869,12 @@ def _sweep(target, args, devices, blocks, targets, bar):
 
     import lagrax
 
-    solver = {"dopri8": dfx.Dopri8, "dopri5": dfx.Dopri5, "tsit5": dfx.Tsit5}[
-        args.solver
-    ]()
+    solver = {
+        "dopri8": dfx.Dopri8,
+        "dopri5": dfx.Dopri5,
+        "tsit5": dfx.Tsit5,
+        "taylor": lagrax.Taylor,
+    }[args.solver]()
     lo, hi = target.extra["range"]
     amplitude = np.linspace(lo, hi, args.count)
     q0 = amplitude if target.to_q0 is None else target.to_q0(amplitude)

@@ -158,7 +158,9 @@ def period(
 
     This runs on the same kernel as `sweep_periods` (one lane), and gives the same
     numbers; `solver` is a diffrax explicit Runge–Kutta solver, whose tableau the
-    kernel steps through.
+    kernel steps through, or `lagrax.Taylor()`, a Taylor integrator whose coefficients
+    come by recurrence from the acceleration's jaxpr (heyoka.py's method; 2–3x fewer
+    evaluations per period than `Dopri8` on the pendulum, see `lagrax.Taylor`).
 
     Plain JAX: works under `jit`, `vmap` and `grad` (with respect to `q0` and to any
     parameter `L` closes over). For many amplitudes at once use `sweep_periods`.
@@ -170,7 +172,7 @@ def period(
     - `q0`: the release point (the amplitude, in the coordinate `L` is written in), a
         scalar or shape `(1,)`.
     - `solver`: an adaptive explicit Runge–Kutta diffrax solver (default `Dopri8()`;
-        `Tsit5()`, `Dopri5()`, … work too).
+        `Tsit5()`, `Dopri5()`, … work too), or `lagrax.Taylor()`.
     - `rtol`, `atol`: tolerances, in the lane's own units (lengths in $|q_0|$, times
         in $\sqrt{|q_0|/|\ddot q(q_0)|}$): small amplitudes keep relative accuracy.
     - `max_steps`: the most steps for one swing.

@@ -364,3 +364,15 @@ def test_interrupted_sweep_leaves_no_file_and_resumes(capsys, monkeypatch, tmp_p
         capsys, *argv[:-2], "--rtol", "1e-12", "--out", out_npz.with_suffix(".csv")
     )
     assert rc == 0 and "resuming" not in err and len(calls) == 4
+
+
+def test_sweep_with_the_taylor_solver(capsys, tmp_path):
+    out_csv = tmp_path / "taylor.csv"
+    argv = ["sweep", "pendulum", "--count", "24", "--chunk-size", "8", "--quiet"]
+    rc, out, err = run(capsys, *argv, "--solver", "taylor", "--out", out_csv)
+    assert rc == 0, err
+    data = np.genfromtxt(out_csv, delimiter=",", names=True, dtype=None, encoding=None)
+    assert len(data) == 24 and np.all(data["status"] == 0)
+    np.testing.assert_allclose(
+        data["period"], exact_pendulum(data["amplitude"]), rtol=1e-12
+    )
