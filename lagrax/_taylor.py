@@ -1101,6 +1101,13 @@ class Taylor(eqx.Module):
         picks for float64 at its default tolerance; $K \geq 2$).
     - `max_step`: the longest step in the lane's units of time, $\sqrt{|q_0| /
         |\ddot q_0|}$ (default 2, a third of a small oscillation's period).
+
+    **Example:**
+
+    ```python
+    L = lagrax.systems.pendulum.lagrangian()
+    res = lagrax.sweep_periods(L, jnp.linspace(0.01, 3.1, 4096), solver=lagrax.Taylor())
+    ```
     """
 
     order: int = eqx.field(static=True, default=20)
