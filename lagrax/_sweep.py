@@ -959,7 +959,9 @@ def _periods_jvp(L, m, devices, primals, tangents):
             continue
         for j in range(int(np.size(x))):
             basis = [jnp.zeros_like(y) for y in leaves]
-            basis[i] = jnp.zeros(np.size(x), x.dtype).at[j].set(1).reshape(x.shape)
+            # (A leaf may be a Python scalar with a dtype, `TypedFloat`: no `.shape`.)
+            e = jnp.zeros(np.size(x), jnp.result_type(x)).at[j].set(1)
+            basis[i] = e.reshape(np.shape(x))
             directions.append((jnp.zeros_like(q0), basis))
     dq_dirs = jnp.stack([d[0] for d in directions])
     dc_dirs = [jnp.stack([d[1][k] for d in directions]) for k in range(len(leaves))]
