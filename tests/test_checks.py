@@ -1,0 +1,83 @@
+"""Argument checks (`lagrax._checks`) through the public functions that use them, and
+the hand-derived helpers of `lagrax.systems` against lagrax's own equations."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lagrax
+from lagrax.systems import asymmetric_well, charged_particle, cycloid, driven_pendulum
+from lagrax.systems import pendulum
+
+
+def test_integer_arguments_are_promoted_where_harmless():
+    # Whole radians and an integer length or g: the same as the float call.
+    T_int = pendulum.pendulum_period(1, r=2, g=3)
+    T_float = pendulum.pendulum_period(1.0, r=2.0, g=3.0)
+    assert jnp.issubdtype(jnp.result_type(T_int), jnp.floating)
+    np.testing.assert_allclose(T_int, T_float, rtol=1e-15)
+    np.testing.assert_allclose(
+        cycloid.cycloid_period(R=2, g=3), cycloid.cycloid_period(R=2.0, g=3.0)
+    )
+
+
+@pytest.mark.parametrize("bad", [object(), "1.0", None, 1 + 2j, True])
+def test_non_numbers_are_rejected_naming_the_argument(bad):
+    with pytest.raises(TypeError, match="`amplitude`"):
+        pendulum.pendulum_period(bad)
+
+
+@pytest.mark.parametrize("name", ["r", "g"])
+def test_non_positive_lengths_are_rejected(name):
+    with pytest.raises(ValueError, match=f"`{name}` must be positive"):
+        pendulum.pendulum_period(1.0, **{name: 0})
+
+
+@pytest.mark.parametrize("bad", ["up", None, len, (1.0, 2.0), 1j, [[0.0, 1.0]]])
+def test_charged_particle_fields_are_checked(bad):
+    with pytest.raises((TypeError, ValueError), match="`B` must be a real 3-vector"):
+        charged_particle.lagrangian(B=bad)
+
+
+def test_asymmetric_well_helpers_agree_with_lagrange():
+    k, a, m = 2.0, 0.7, 1.5
+    L = asymmetric_well.lagrangian(m=m, k=k, a=a)
+    x = jnp.array([0.3])
+    v = jnp.array([0.4])
+    # V is the potential of L (kinetic part at zero velocity vanishes) ...
+    np.testing.assert_allclose(
+        -L(x, jnp.zeros(1), 0.0), asymmetric_well.potential(x[0], k=k, a=a)
+    )
+    # ... and the barrier top is a stationary point of V at the height given.
+    xb, Vb = asymmetric_well.barrier(k=k, a=a)
+    dV = jax.grad(lambda x: asymmetric_well.potential(x, k=k, a=a))(xb)
+    assert abs(float(dV)) < 1e-12
+    np.testing.assert_allclose(asymmetric_well.potential(xb, k=k, a=a), Vb)
+    np.testing.assert_allclose(
+        lagrax.accelerations(L, x, v),
+        asymmetric_well.acceleration(x, v, m=m, k=k, a=a),
+        rtol=1e-13,
+    )
+
+
+def test_cycloid_u_acceleration_agrees_with_lagrange():
+    L = cycloid.lagrangian_u(R=0.7, g=2.0)
+    u, udot = jnp.array([0.4]), jnp.array([-0.3])
+    np.testing.assert_allclose(
+        lagrax.accelerations(L, u, udot),
+        cycloid.acceleration_u(u, udot, R=0.7, g=2.0),
+        rtol=1e-13,
+    )
+
+
+def test_kapitza_frequency_scales_as_its_formula():
+    w = driven_pendulum.kapitza_critical_frequency(a=0.1, l=1.0, g=9.81)
+    np.testing.assert_allclose(w, np.sqrt(2 * 9.81) / 0.1)
+    # Four times the length: twice the frequency; twice the amplitude: half.
+    np.testing.assert_allclose(
+        driven_pendulum.kapitza_critical_frequency(a=0.1, l=4.0, g=9.81), 2 * w
+    )
+    np.testing.assert_allclose(
+        driven_pendulum.kapitza_critical_frequency(a=0.2, l=1.0, g=9.81), w / 2
+    )

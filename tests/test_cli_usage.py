@@ -1,0 +1,204 @@
+"""`lagrax` command line: usage errors and helpers that need no sweep to run.
+
+Each case fails before any work (the sweep is replaced by one that fails the test if
+called), so these are cheap; the end-to-end runs are in test_cli.py.
+"""
+
+import os
+import sys
+import textwrap
+
+import matplotlib.ticker
+import numpy as np
+import pytest
+
+import lagrax
+from lagrax import _cli
+
+
+def run(capsys, *argv):
+    rc = _cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+@pytest.fixture
+def no_sweep(monkeypatch):
+    def boom(*args, **kwargs):
+        raise AssertionError("the sweep ran")
+
+    monkeypatch.setattr(lagrax, "sweep_periods", boom)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--rows", "-1"], "--rows must be >= 0"),
+        (["--max-steps", "0"], "--max-steps must be positive"),
+        (["--min", "nan"], "--min must be a finite number"),
+        (["--max", "inf"], "--max must be a finite number"),
+        (["--atol", "0"], "--atol must be a positive number"),
+        (["--timeout", "0"], "--timeout must be a positive number"),
+        (["--param", "g=(1, 'x')"], "a sequence value must hold numbers"),
+        (["--param", "2g=1"], "--param must be NAME=VALUE"),
+        (["pendulum", "pendulum"], "a TARGET is given twice"),
+        (["both", "cycloid"], "a TARGET is given twice"),
+        (
+            ["--coordinator", "h:1", "--num-processes", "0", "--process-id", "0"],
+            "--num-processes must be positive",
+        ),
+        (
+            ["--coordinator", "h:99999", "--num-processes", "2", "--process-id", "0"],
+            "--coordinator must be HOST:PORT",
+        ),
+        (["--out", "results.npy"], "--out must end in .csv or .npz"),
+    ],
+)
+def test_usage_errors_name_the_option(capsys, no_sweep, argv, message):
+    rc, out, err = run(capsys, "sweep", *argv)
+    assert rc == 2 and out == ""
+    assert err.startswith("lagrax: error:") and err.count("\n") == 1, err
+    assert message in err, err
+
+
+def test_output_path_that_is_a_directory_is_refused(capsys, no_sweep, tmp_path):
+    target = tmp_path / "res.csv"
+    target.mkdir()
+    rc, _, err = run(capsys, "sweep", "--out", target)
+    assert rc == 2 and "it is a directory" in err
+
+
+MODULE = textwrap.dedent(
+    """
+    import jax.numpy as jnp
+
+
+    def returns_number():
+        return 3
+
+
+    def returns_two_args():
+        return lambda q, qdot: q[0]
+
+
+    def needs_k(*, k):
+        def L(q, qdot, t):
+            return 0.5 * qdot[0] ** 2 - 0.5 * k * q[0] ** 2
+
+        return L
+
+
+    def always_fails(q, qdot, t):
+        raise ValueError("never traceable")
+
+
+    class Box:
+        pass
+
+
+    box = Box()
+    """
+)
+
+
+@pytest.fixture
+def user_dir(tmp_path, monkeypatch):
+    (tmp_path / "cli_usage_systems.py").write_text(MODULE)
+    (tmp_path / "cli_usage_broken.py").write_text("raise RuntimeError('bad import')\n")
+    (tmp_path / "cli_usage_missing_dep.py").write_text("import no_such_dep_xyz\n")
+    (tmp_path / "data.txt").write_text("not python\n")
+    monkeypatch.chdir(tmp_path)
+    yield tmp_path
+    for name in ("cli_usage_systems", "cli_usage_broken", "cli_usage_missing_dep"):
+        sys.modules.pop(name, None)
+
+
+@pytest.mark.parametrize(
+    "target, extra, message",
+    [
+        ("cli_usage_systems:returns_number", [], "returned a int, not a Lagrangian"),
+        (
+            "cli_usage_systems:returns_two_args",
+            [],
+            "returned a function of 2 required argument(s)",
+        ),
+        ("cli_usage_systems:needs_k", [], "needs the parameter 'k'"),
+        ("cli_usage_systems:always_fails", [], "raised ValueError: never traceable"),
+        ("cli_usage_systems:box.missing", [], "has no attribute 'missing'"),
+        ("cli_usage_systems:", [], "expected module:attr"),
+        ("cli_usage_broken:L", [], "raised RuntimeError: bad import"),
+        ("cli_usage_broken.py:L", [], "raised RuntimeError: bad import"),
+        ("cli_usage_missing_dep:L", [], "raised ModuleNotFoundError"),
+        ("./data.txt:L", [], "(not Python)"),
+    ],
+)
+def test_bad_user_targets_are_usage_errors(
+    capsys, no_sweep, user_dir, target, extra, message
+):
+    rc, out, err = run(
+        capsys, "sweep", target, "--min", "0.1", "--max", "1", "--count", "4", *extra
+    )
+    assert rc == 2 and out == "", err
+    assert err.startswith("lagrax: error:") and err.count("\n") == 1, err
+    assert message in err, err
+
+
+def test_factory_with_a_required_parameter_runs_when_given(capsys, user_dir, tmp_path):
+    out = tmp_path / "k.npz"
+    rc, _, err = run(
+        capsys, "sweep", "cli_usage_systems:needs_k", "--param", "k=4", "--min", "0.1",
+        "--max", "1", "--count", "4", "--chunk-size", "4", "--out", out, "--quiet",
+    )  # fmt: skip
+    assert rc == 0, err
+    with np.load(out) as f:
+        # A harmonic oscillator: T = 2π/√k at every amplitude.
+        np.testing.assert_allclose(f["period"], np.pi, rtol=1e-10)
+
+
+def test_unreachable_cluster_exits_3(capsys, monkeypatch):
+    def unreachable(args):
+        raise _cli._Unreachable("could not join the other processes")
+
+    monkeypatch.setattr(_cli, "_run_sweep", unreachable)
+    rc, out, err = run(capsys, "sweep")
+    assert rc == 3 and out == ""
+    assert err == "lagrax: error: could not join the other processes\n"
+
+
+def test_cpu_count_without_affinity(monkeypatch):
+    assert _cli._cpu_count() >= 1
+    monkeypatch.delattr(os, "sched_getaffinity", raising=False)
+    assert _cli._cpu_count() == (os.cpu_count() or 1)
+
+
+def test_status_names_follow_the_status_codes():
+    for code, name in lagrax.STATUS_CODES.items():
+        expected = name if isinstance(name, str) else str(name[0])
+        assert _cli._status_name(code) == expected
+    unknown = max(lagrax.STATUS_CODES) + 100
+    assert _cli._status_name(unknown) == f"status_{unknown}"
+
+
+def test_chart_switches_to_a_log_axis_for_a_wide_range():
+    # Periods over two decades of T/T0 (a well that stiffens and softens a lot).
+    amplitude = np.linspace(0.1, 3.0, 30)
+    period = 2 * np.pi * np.geomspace(1.0, 100.0, 30)
+    target = _cli._Target("pendulum", None, "θ₀ (rad)", T0=2 * np.pi)
+    target.extra["reference"] = "none"
+    r = {
+        "system": "pendulum",
+        "target": target,
+        "amplitude": amplitude,
+        "q0": amplitude,
+        "period": period,
+        "status": np.zeros(amplitude.size, np.int32),
+    }
+    _cli._add_reference(r, target, None)
+    assert np.nanmax(period) / np.nanmin(period) > 30
+    fig = _cli._chart([r], 1e-13)
+    top = fig.axes[0]
+    assert top.get_yscale() == "log"
+    assert isinstance(top.yaxis.get_major_formatter(), matplotlib.ticker.FuncFormatter)
+    fig.canvas.draw()
+    labels = [t.get_text() for t in top.get_yticklabels() if t.get_text()]
+    assert labels and not any("10^" in s or "×" in s for s in labels)
