@@ -41,8 +41,10 @@ def periods(a, method):
 
 def test_jacobian_wrt_track_matches_finite_differences():
     """Every lane's dT/da finite (the event at the bottom of the track, x = 0, where
-    the jacobian needs third derivatives of L) and equal to central differences."""
-    for method in ("matched", "quarter"):
+    the jacobian needs third derivatives of L) and equal to central differences. The
+    default method, "matched", whose second leg ends at the first leg's event: its
+    gradients were 15-30 % off before the event's position carried its tangent."""
+    for method in ("matched",):
         J = np.asarray(jax.jacfwd(lambda a: periods(a, method))(A0))
         assert np.isfinite(J).all(), J
         h = 1e-5

@@ -77,10 +77,16 @@ def test_failing_lanes_leave_others_alone():
     )
 
 
-def test_period_and_gradient_match_exact():
+def test_period_matches_exact():
     q0 = jnp.asarray(1.3)
     T = lagrax.period(PENDULUM, q0, solver=TAYLOR, method="quarter", rtol=1e-13)
     assert abs(float(T) / float(pendulum.period(q0)) - 1) < 1e-12
+
+
+@pytest.mark.slow  # ~35 s on one core (compiling the forward-mode kernel);
+# tests/test_gradients.py checks gradients through the kernel in the default suite.
+def test_gradient_matches_exact():
+    q0 = jnp.asarray(1.3)
     f = lambda q: lagrax.period(
         PENDULUM, q, solver=TAYLOR, method="quarter", rtol=1e-13, error_estimate=False
     )
