@@ -159,8 +159,9 @@ def period(
     This runs on the same kernel as `sweep_periods` (one lane), and gives the same
     numbers; `solver` is a diffrax explicit Runge–Kutta solver, whose tableau the
     kernel steps through, or `lagrax.Taylor()`, a Taylor integrator whose coefficients
-    come by recurrence from the acceleration's jaxpr (heyoka.py's method; 2–3x fewer
-    evaluations per period than `Dopri8` on the pendulum, see `lagrax.Taylor`).
+    come by recurrence from the acceleration's jaxpr (heyoka.py's method; ~3x fewer
+    steps per period than `Dopri8` on the pendulum, ~1.9x the speed; see
+    `lagrax.Taylor`).
 
     Plain JAX: works under `jit`, `vmap` and `grad` (with respect to `q0` and to any
     parameter `L` closes over). For many amplitudes at once use `sweep_periods`.

@@ -1057,7 +1057,7 @@ def sweep_periods(
     order of `q0` does not matter (`useful_fraction` is typically 0.95–0.98). The step
     is the `solver`'s explicit Runge–Kutta step written out stage by stage from its
     diffrax tableau, with diffrax's step-size rule, or with `solver=lagrax.Taylor()`
-    an order-20 Taylor step (2–3x the periods per second of `Dopri8` on the
+    an order-20 Taylor step (~1.9x the periods per second of `Dopri8` on the
     pendulum, at the same or better accuracy: `benchmarks/sweep.py`); events are
     located by re-stepping with the step length as the unknown (module docstring of
     `lagrax._sweep`).
