@@ -532,8 +532,8 @@ class _Store:
         return lax.dynamic_slice_in_dim(Rb, self.K - self.k, self.K + 1, 0)
 
 
-class _Unrolled:
-    r"""The `_Store` interface with the order $k$ a Python int: every series is a list
+class _Unrolled(_Store):
+    r"""The `_Store` interface (`aux` inherited) with the order $k$ a Python int: every series is a list
     of per-order `(W, ...)` arrays (`None` for an exact zero) and every Cauchy sum is
     exactly triangular, $\sum_{j=0}^{k} a_j b_{k-j}$ over the orders computed so far.
 
@@ -559,10 +559,6 @@ class _Unrolled:
         if h not in self.coef:
             self.coef[h] = [self.lanes[h]()]
         return self.coef[h]
-
-    def aux(self, key, init0):
-        self.lanes.setdefault(key, init0)
-        return key
 
     def get(self, h):
         if h in self.cur:
