@@ -118,6 +118,58 @@ def stepper(solver) -> "_Tableau | Taylor | None":
     return explicit_tableau(solver)
 
 
+def _one_fusion(values: dict) -> dict:
+    """The same `(W,)` arrays, computed by XLA in one loop over the lanes.
+
+    XLA on a CPU copies a cheap subprogram into every fusion that consumes it, so a
+    loop body whose lanes leave with ~25 fields (and a Taylor step whose (h, x, v)
+    all depend on one straight-line recurrence) recomputed that program once per
+    consumer: the Taylor step three to six times, the bookkeeping in ~40 loops.
+    A variadic `reduce` is one fusion with many outputs: each field is stacked
+    with the reducer's identity and reduced over that axis of length 2 (exact:
+    -0.0 + x is x for every float x), so every field comes out of one loop whose
+    body computes each shared value once.
+    """
+    keys = list(values)
+    return dict(zip(keys, _fused(*(values[k] for k in keys))))
+
+
+@jax.custom_jvp
+def _fused(*vals):
+    ops, inits = [], []
+    for val in vals:
+        if val.dtype == jnp.bool_:
+            ident = np.bool_(False)
+        elif jnp.issubdtype(val.dtype, jnp.floating):
+            ident = np.array(-0.0, val.dtype)
+        else:
+            ident = np.array(0, val.dtype)
+        ops.append(jnp.stack([val, jnp.full_like(val, ident)]))
+        inits.append(ident)
+
+    def reducer(a, b):
+        return tuple(
+            ai | bi if ai.dtype == jnp.bool_ else ai + bi for ai, bi in zip(a, b)
+        )
+
+    return tuple(jax.lax.reduce(ops, inits, reducer, (0,)))
+
+
+@_fused.defjvp
+def _fused_jvp(primals, tangents):
+    # The identity: tangents pass through (the reduction's own rule chokes on the
+    # symbolic zeros of integer fields).
+    return _fused(*primals), tuple(tangents)
+
+
+def _log2(n):
+    """log2 of a positive float to 0.014 (frexp and a cubic; no libm call): the
+    step-length rule's j-th roots need only a few digits."""
+    m, e = jnp.frexp(n)  # n = m 2^e, m in [1/2, 1)
+    t = 2.0 * m - 1.0
+    return e.astype(n.dtype) - 1.0 + t * (1.4425 + t * (-0.7213 + t * 0.2788))
+
+
 def _horner(cs, h):
     out = cs[-1]
     for c in cs[-2::-1]:
@@ -137,15 +189,20 @@ def _taylor_step(spec, coeffs, accel, s, x, v, h_req, free, rtol, atol, cap):
     # then rest on a single number that passes through zero as the amplitude varies
     # (measured: the pendulum at q0 = 2.23692 took a first step 1.4x too long and
     # lost 1.8e-9 in the period at rtol 1e-13; neighbours 1e-12).
-    inv_rho = None
+    # In the log domain, max_j log2(n_j) / j, and one exp2 (four `pow` calls cost
+    # ~30 ns per lane-step, measured).
+    lg = None
     for j in range(max(1, K - 3), K + 1):
-        n = jnp.maximum(jnp.abs(xs[j]), jnp.abs(vs[j])) ** (1.0 / j)
-        inv_rho = n if inv_rho is None else jnp.maximum(inv_rho, n)
+        n = jnp.maximum(jnp.abs(xs[j]), jnp.abs(vs[j]))
+        lj = jnp.where(n > 0, _log2(n), -jnp.inf) / j
+        lg = lj if lg is None else jnp.maximum(lg, lj)
     scale = np.exp(-0.7 / (K - 1)) * tol ** (1.0 / K)
-    h_jz = jnp.where(inv_rho > 0, scale / jnp.where(inv_rho > 0, inv_rho, 1.0), jnp.inf)
+    h_jz = scale * jnp.exp2(-lg)
     h = jnp.where(free, jnp.minimum(h_jz, jnp.minimum(cap, spec.max_step)), h_req)
     h = jax.lax.stop_gradient(h)
     x1, v1 = _horner(xs, h), _horner(vs, h)
+    out = _one_fusion(dict(x1=x1, v1=v1, h=h))
+    x1, v1, h = out["x1"], out["v1"], out["h"]
     return x1, v1, accel(s + h, x1, v1), h
 
 
@@ -189,6 +246,9 @@ def _rk_step(tab, accel, s, x, v, a, h):
 # compiled loop, so that one compiled kernel serves every leg of every method (and
 # the tolerances of the error estimate's second solve): compile time is one loop.
 TURNING, MAX_SPEED, POSITION = 0, 1, 2
+
+# What each amplitude's lane hands in (packed as the columns of one array).
+_OUT = ("sigma", "raw", "s", "x", "v", "steps")
 
 
 class _Pass(eqx.Module):
@@ -271,13 +331,31 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
     # in the refill for every lane cost ~20% of a Taylor sweep (measured, 1 core).
     scales = _lane_scales(L, q0s, consts)
 
+    # One row per amplitude, so that a refill is one gather (each gather, scatter
+    # or small fusion is a separate call of ~0.5-1 µs on a CPU: with ten of them
+    # and a `lax.cond`, the refill cost as much as the Taylor step, measured).
+    table = jnp.stack(
+        [
+            q0s,
+            scales[0].astype(dtype),
+            *scales[1:],
+            targets.astype(dtype),
+            kinds.astype(dtype),
+            rtols.astype(dtype),
+            atols.astype(dtype),
+        ],
+        axis=1,
+    )
+
     def load(idx):
         """Lane parameters and initial state for queue positions `idx` (>= n: idle)."""
         live = idx < n
-        at = jnp.minimum(idx, n - 1)
-        q0 = jnp.where(live, q0s[at], 1.0)
-        valid, Qs, tau, sigma = (a[at] for a in scales)
-        target, kind, rtol, atol = targets[at], kinds[at], rtols[at], atols[at]
+        row = table[jnp.minimum(idx, n - 1)]
+        q0 = jnp.where(live, row[:, 0], 1.0)
+        valid = row[:, 1] > 0
+        Qs, tau, sigma, target = row[:, 2], row[:, 3], row[:, 4], row[:, 5]
+        kind = row[:, 6].astype(kinds.dtype)
+        rtol, atol = row[:, 7], row[:, 8]
         z = jnp.zeros_like(q0)
         h0 = 0.1 * jnp.minimum(rtol, atol) ** expo
         return dict(
@@ -316,7 +394,11 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
         return _event_value(lane["kind"], lane["sigma"], lane["xt"], x, v, a)
 
     def body(carry):
-        lane, out, nxt, it = carry
+        lane, free, pending, out, nxt, it = carry
+        # Lanes freed by the last iteration take their new amplitudes.
+        lane = jax.tree.map(
+            lambda new, old: jnp.where(free, new, old), load(pending), lane
+        )
         s, x, v, a, h = lane["s"], lane["x"], lane["v"], lane["a"], lane["h"]
         active = ~lane["done"]
 
@@ -440,11 +522,19 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
         else:
             next_leg = jnp.zeros_like(converged)
             finished = converged
-        raw = jnp.select(
-            [finished, gave_up, escaped | ran_out, collapsed, out_of_steps],
-            [LOCATED, LOCATE_FAILED, NO_EVENT, STEP_FAILED, MAX_STEPS],
-            lane["raw"],
-        )
+        # Nested `where`s, not `jnp.select` (an argmax over the stacked conditions,
+        # a reduction XLA recomputed the whole step into: measured 5x the step).
+        raw = lane["raw"]
+        for cond_, code in reversed(
+            [
+                (finished, LOCATED),
+                (gave_up, LOCATE_FAILED),
+                (escaped | ran_out, NO_EVENT),
+                (collapsed, STEP_FAILED),
+                (out_of_steps, MAX_STEPS),
+            ]
+        ):
+            raw = jnp.where(cond_, code, raw)
         ends = active & (
             finished | gave_up | escaped | ran_out | collapsed | out_of_steps
         )
@@ -478,48 +568,31 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
         )
         lane["hp"] = jnp.where(locating | crossed, h, lane["hp"])
         lane["gp"] = jnp.where(locating | crossed, g1, lane["gp"])
+        lane = _one_fusion(lane)
 
-        # --- lanes that are done hand in their result and take the next amplitude
-        def refill(args):
-            lane, out, nxt = args
-            done = lane["done"] & (lane["idx"] < n)
-            idx = jnp.where(done, lane["idx"], n)
-            out = {
-                k: out[k].at[idx].set(lane[k].astype(out[k].dtype), mode="drop")
-                for k in out
-            }
-            free = lane["done"]
-            rank = jnp.cumsum(free.astype(jnp.int32)) - 1
-            new_idx = jnp.where(free, nxt + rank, n)
-            fresh = load(new_idx)
-            lane = jax.tree.map(lambda new, old: jnp.where(free, new, old), fresh, lane)
-            return lane, out, (nxt + jnp.sum(free)).astype(jnp.int32)
-
-        any_done = jnp.any(lane["done"] & (lane["idx"] < n))
-        lane, out, nxt = jax.lax.cond(
-            any_done | (nxt < n) & jnp.any(lane["done"]),
-            refill,
-            lambda args: args,
-            (lane, out, nxt),
-        )
-        return lane, out, nxt, it + 1
+        # --- lanes that are done hand in their result and are given the next amplitude
+        done = lane["done"] & (lane["idx"] < n)
+        rows = jnp.stack([lane[k].astype(dtype) for k in _OUT], axis=1)
+        out = out.at[jnp.where(done, lane["idx"], n)].set(rows, mode="drop")
+        free = lane["done"]
+        rank = jnp.cumsum(free.astype(jnp.int32))
+        pending = jnp.where(free, nxt + rank - 1, n).astype(jnp.int32)
+        return lane, free, pending, out, (nxt + rank[-1]).astype(jnp.int32), it + 1
 
     def cond(carry):
-        lane, _, nxt, _ = carry
-        return jnp.any(lane["idx"] < n)
+        lane, free, pending = carry[:3]
+        return jnp.any((lane["idx"] < n) | (free & (pending < n)))
 
     lane = load(jnp.arange(W, dtype=jnp.int32))
-    out = dict(
-        sigma=jnp.zeros(n, dtype),
-        raw=jnp.zeros(n, jnp.int32),
-        s=jnp.zeros(n, dtype),
-        x=jnp.zeros(n, dtype),
-        v=jnp.zeros(n, dtype),
-        steps=jnp.zeros(n, jnp.int32),
-    )
-    # Lanes that could not start are recorded by the first refill.
-    init = (lane, out, jnp.asarray(W, jnp.int32), jnp.zeros((), jnp.int32))
-    lane, out, _, iterations = jax.lax.while_loop(cond, body, init)
+    out = jnp.zeros((n, len(_OUT)), dtype)
+    # Lanes that could not start are recorded at the end of the first iteration.
+    no = jnp.zeros(W, bool)
+    nxt, it = jnp.asarray(W, jnp.int32), jnp.zeros((), jnp.int32)
+    init = (lane, no, jnp.full(W, n, jnp.int32), out, nxt, it)
+    lane, _, _, out, _, iterations = jax.lax.while_loop(cond, body, init)
+    out = {k: out[:, i] for i, k in enumerate(_OUT)}
+    out["raw"] = out["raw"].astype(jnp.int32)
+    out["steps"] = out["steps"].astype(jnp.int32)
     return out, iterations * W
 
 
@@ -999,6 +1072,14 @@ def _periods_jvp(L, m, devices, primals, tangents):
     )
 
 
+@eqx.filter_jit
+def _sweep_call(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
+    """`_periods_diff` as one compiled call: one dispatch instead of a dozen (measured:
+    ~3 ms of Python and dispatch per call, a third of a 4096-amplitude Taylor sweep
+    on one core)."""
+    return _periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
+
+
 def _zeros_if_symbolic(t, like):
     if type(t) is jax.custom_derivatives.SymbolicZero or t is None:
         return jnp.zeros_like(like)
@@ -1135,9 +1216,7 @@ def sweep_periods(
     n = q0.shape[0]
 
     def run(q):
-        return _periods_diff(
-            L_c, cfg, devices, q, consts, rtol, atol, t_max, energy_tol
-        )
+        return _sweep_call(L_c, cfg, devices, q, consts, rtol, atol, t_max, energy_tol)
 
     if progress is None:
         periods, status, steps, executed, estimate = run(q0)
