@@ -541,9 +541,10 @@ def _builtin(name, params):
                 target.default_range = (1e-3 * k / a, 0.49 * k / a)
             target.amplitude_label = "x₀"
     if exact_fn is not None:
-        target.exact = lambda amp, fn=exact_fn: np.asarray(
-            _call_with(fn, params, jnp.asarray(amp)), dtype=np.float64
-        ) * np.ones_like(amp)
+        target.exact = lambda amp, fn=exact_fn: (
+            np.asarray(_call_with(fn, params, jnp.asarray(amp)), dtype=np.float64)
+            * np.ones_like(amp)
+        )
     small = getattr(module, "small_amplitude_period", None)
     try:
         if callable(small):
@@ -841,6 +842,7 @@ class _Blocks:
                 shutil.rmtree(self.dir)
         if not os.path.isdir(self.dir):
             os.makedirs(self.dir)
+
             def write(p):
                 with open(p, "w") as f:
                     json.dump(manifest, f)

@@ -21,9 +21,9 @@ Runge–Kutta method.
 
 Design, measured (`benchmarks/taylor_coefficients.py`):
 
-- The jaxpr is traced once at scalar inputs, nested calls (`jit`, `custom_jvp_call`, ...)
-    are inlined, duplicate equations merged (an autodiff jaxpr computes `sin q` once
-    per tangent direction) and dead ones dropped.
+- The jaxpr is traced once at scalar inputs, nested calls (`jit`, `custom_jvp_call`,
+    ...) are inlined, duplicate equations merged (an autodiff jaxpr computes `sin q`
+    once per tangent direction) and dead ones dropped.
 - A variable is a *series* only if it depends differentiably on $(s, x, v)$. Everything
     else (tangent seeds, a constant mass matrix, per-lane parameters, comparisons) is
     evaluated once, at order 0, and multiplies series in $O(K)$. Outputs of
@@ -533,9 +533,10 @@ class _Store:
 
 
 class _Unrolled(_Store):
-    r"""The `_Store` interface (`aux` inherited) with the order $k$ a Python int: every series is a list
-    of per-order `(W, ...)` arrays (`None` for an exact zero) and every Cauchy sum is
-    exactly triangular, $\sum_{j=0}^{k} a_j b_{k-j}$ over the orders computed so far.
+    r"""The `_Store` interface (`aux` inherited) with the order $k$ a Python int:
+    every series is a list of per-order `(W, ...)` arrays (`None` for an exact zero)
+    and every Cauchy sum is exactly triangular, $\sum_{j=0}^{k} a_j b_{k-j}$ over the
+    orders computed so far.
 
     All orders of one step then trace into one straight-line program that XLA fuses
     into a few loops over the lanes, with nothing stored between orders. Measured on
@@ -543,8 +544,8 @@ class _Unrolled(_Store):
     and the polynomial's evaluation when they reach XLA as ONE output (against
     ~1.3 µs for the `fori_loop` over `(K + 1, W)` arrays); stacking the K + 1
     coefficients as outputs instead makes XLA recompute the whole program once per
-    output (~300 ns, 36 sines), which is why the entry point below returns the
-    polynomial's values, not its coefficients.
+    output (~300 ns, 36 sines); the period kernel therefore passes the step's
+    outputs through one variadic reduction (`lagrax._sweep._one_fusion`).
     """
 
     def __init__(self, zero, lanes, coef):
@@ -1074,10 +1075,12 @@ class Taylor(eqx.Module):
     Each step expands the trajectory to order $K$ about the current state with the
     coefficients of `taylor_coefficients` (recurrences from the acceleration's jaxpr,
     one transcendental call per node per step), takes the step length from the last
-    two coefficients (Jorba and Zou's rule, as heyoka.py does):
+    coefficients (Jorba and Zou's rule, as heyoka.py does, but over the last four
+    orders instead of two: from rest the odd coefficients vanish and two orders can
+    rest on one coefficient passing through zero):
 
-    $$h = e^{-0.7/(K-1)} \min_{j \in \{K-1, K\}}
-    \left(\frac{\varepsilon}{\lVert (x_j, v_j)\rVert_\infty}\right)^{1/j},\qquad
+    $$h = e^{-0.7/(K-1)}\,\varepsilon^{1/K} \min_{K-3 \le j \le K}
+    \lVert (x_j, v_j)\rVert_\infty^{-1/j},\qquad
     \varepsilon = \text{atol} + \text{rtol}\,\lVert (x_0, v_0)\rVert_\infty,$$
 
     (never longer than `max_step` in the lane's units of time, a fraction of its

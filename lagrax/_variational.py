@@ -43,8 +43,8 @@ def _unwrap(
 
 
 def _newton_scales(L, q0, qdot0, t0):
-    r"""$(|\mathrm{diag}\,M|, |\mathrm{diag}\,\partial^2L/\partial q^2|)$ at the start of
-    a step: the units in which the Newton residuals (momenta) are put back into the
+    r"""$(|\mathrm{diag}\,M|, |\mathrm{diag}\,\partial^2L/\partial q^2|)$ at the start
+    of a step: the units in which the Newton residuals (momenta) are put back into the
     units of the unknowns."""
     m = jnp.abs(jnp.diag(jax.jacfwd(_momenta, argnums=2)(L, q0, qdot0, t0)))
     dLdq = jax.grad(L, argnums=0)
