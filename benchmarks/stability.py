@@ -136,8 +136,10 @@ def _p_phi(L, q, qdot, t):
     return lagrax.momenta(L, q, qdot, t)[1]
 
 
-def long_horizon(periods, samples=4000):
+def long_horizon(periods, samples=4000, only=None):
     """Energy (and, for the spherical pendulum, Noether momentum) over `periods`.
+
+    `only`: names of the systems to run (default all three).
 
     Three systems: the pendulum at 2.5 rad (period T exact), the double pendulum from
     rest at (0.5, -0.3) rad (T: the slow normal mode's period, 8.2), the spherical
@@ -162,6 +164,8 @@ def long_horizon(periods, samples=4000):
                                (jnp.array([1.0, 0.0]), jnp.array([0.2, 1.3])), T_sph,
                                dict(energy=_energy, p_phi=_p_phi)),
     }  # fmt: skip
+    if only is not None:
+        systems = {k: v for k, v in systems.items() if k in only}
     out = {}
     for sysname, (L, y0, T, invariants) in systems.items():
         h = T / 40
