@@ -1033,8 +1033,7 @@ def _periods_jvp(L, m, devices, primals, tangents):
     dq0, dconsts = tangents[0], tangents[1]
     periods_of = lambda q0, consts: _periods(
         L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
-    )[0]
-    out = _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
+    )
     # Lanes are independent: dT_i/dq0_j is diagonal, one forward pass for all of it;
     # each scalar parameter L closes over takes one more forward pass.
     leaves, treedef = jax.tree.flatten(consts)
@@ -1057,9 +1056,12 @@ def _periods_jvp(L, m, devices, primals, tangents):
             c if ok else np.zeros(np.shape(x), jax.dtypes.float0)
             for c, x, ok in zip(dc, leaves, inexact)
         ]
-        return jax.jvp(periods_of, (q0, consts), (dq, treedef.unflatten(dc)))[1]
+        out, dout = jax.jvp(periods_of, (q0, consts), (dq, treedef.unflatten(dc)))
+        return out, dout[0]
 
-    jac = jax.vmap(tangent)(dq_dirs, dc_dirs)  # (1 + p, n)
+    # The primal outputs come from the same forward pass (unbatched over the
+    # directions): one copy of the sweep in the compiled program, not two.
+    out, jac = jax.vmap(tangent, out_axes=(None, 0))(dq_dirs, dc_dirs)  # (1 + p, n)
     dT = jac[0] * _zeros_if_symbolic(dq0, q0)
     k = 1
     for x, dx, ok in zip(leaves, jax.tree.leaves(dconsts), inexact):

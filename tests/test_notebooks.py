@@ -16,6 +16,10 @@ NOTEBOOKS = sorted((pathlib.Path(__file__).parent.parent / "notebooks").glob("*.
 def test_notebook_runs(path, monkeypatch, tmp_path):
     monkeypatch.setenv("LAGRAX_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    # The kernel is a subprocess: without this, `patch = ["subprocess"]` in the
+    # coverage settings measures it too, ~30% slower; notebooks are not coverage.
+    monkeypatch.delenv("COVERAGE_PROCESS_CONFIG", raising=False)
+    monkeypatch.delenv("COVERAGE_PROCESS_START", raising=False)
     nb = nbformat.read(path, as_version=4)
     assert nb.cells[0].cell_type == "markdown" and nb.cells[0].source.startswith("#")
     client = nbclient.NotebookClient(
