@@ -145,7 +145,13 @@ def positive_scalar(x, name: str, dtype, *, optional: bool = False):
     `None` passes through when `optional`. Values are checked when concrete."""
     if x is None and optional:
         return None
-    x = as_real_array(x, name) if not isinstance(x, int | float) else jnp.asarray(x)
+    if isinstance(x, int | float) and not isinstance(x, bool):
+        # A Python number: checked and converted by NumPy (a `jnp` conversion of a
+        # weakly typed scalar compiles an XLA computation on a first call).
+        if not (math.isfinite(x) and x > 0):
+            raise ValueError(f"`{name}` must be a positive finite number; got {x}.")
+        return jnp.asarray(np.asarray(x, dtype))
+    x = as_real_array(x, name)
     if jnp.ndim(x) != 0:
         raise ValueError(f"`{name}` must be a scalar; got shape {jnp.shape(x)}.")
     if is_concrete(x):
@@ -296,6 +302,27 @@ def _concrete(x):
     return x if is_concrete(x) else np.zeros(jnp.shape(x), jnp.result_type(x))
 
 
+_DYNAMIC_INDEXING = frozenset(
+    {"gather", "dynamic_slice", "dynamic_update_slice", "scatter", "scatter-add"}
+)
+
+
+def _indexes_dynamically(jaxpr) -> bool:
+    """Whether `jaxpr` (or a jaxpr nested in it) gathers, scatters or slices at
+    indices known only at run time."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in _DYNAMIC_INDEXING or eqn.primitive.name.startswith(
+            "scatter"
+        ):
+            return True
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, tuple | list) else (param,):
+                sub = getattr(sub, "jaxpr", sub)
+                if hasattr(sub, "eqns") and _indexes_dynamically(sub):
+                    return True
+    return False
+
+
 def check_indices(f, name: str, signature: str, *args):
     """Raises if `f(*args)` indexes an array out of range.
 
@@ -312,6 +339,12 @@ def check_indices(f, name: str, signature: str, *args):
     if key in _PROBED.get(f, ()):  # (jax.eval_shape, before, needs weakrefs too)
         return
     try:
+        if not _indexes_dynamically(jax.make_jaxpr(f)(*args).jaxpr):
+            # Static indices out of range fail while tracing; only gathers and
+            # dynamic slices can clamp silently. (Evaluating the checked jaxpr op
+            # by op compiles each op on a first call: ~0.1 s, measured.)
+            _PROBED.setdefault(f, set()).add(key)
+            return
         checked = checkify.checkify(f, errors=checkify.index_checks)
         with _explicit_gather_modes_unchecked():
             jaxpr, shapes = jax.make_jaxpr(checked, return_shape=True)(*args)
@@ -408,9 +441,9 @@ def check_one_dof(L, dtype):
             return
     except TypeError:  # not weak-referenceable or not hashable: check every time
         pass
-    z = jnp.zeros((1,), dtype)
+    z = np.zeros((1,), dtype)  # (NumPy: `jnp.zeros` compiles on a first call)
     check_lagrangian(
-        L, z, z, jnp.zeros((), dtype), what=" of one degree of freedom, q of shape (1,)"
+        L, z, z, np.zeros((), dtype), what=" of one degree of freedom, q of shape (1,)"
     )
     try:
         _ONE_DOF_OK.setdefault(L, set()).add(dtype)

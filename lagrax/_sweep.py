@@ -333,7 +333,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
         )
         return qddot[0] / As
 
-    accel_lanes = jax.vmap(accel_one)
+    # Traced once and reused by every call site (13 per Dopri8 step, the refinement,
+    # the refill): tracing the scalarized equations anew at each cost ~13 ms apiece.
+    # `inline=True`: XLA sees the same program.
+    accel_lanes = jax.jit(jax.vmap(accel_one), inline=True)
 
     # Each amplitude's release quantities, once for the whole queue: computing them
     # in the refill for every lane cost ~20% of a Taylor sweep (measured, 1 core).
@@ -1086,7 +1089,10 @@ def _sweep_call(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     """`_periods_diff` as one compiled call: one dispatch instead of a dozen (measured:
     ~3 ms of Python and dispatch per call, a third of a 4096-amplitude Taylor sweep
     on one core)."""
-    return _periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
+    out = _periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
+    # The total of the steps too: `jnp.sum` outside costs an XLA compile of its own
+    # (~80 ms on a first call, measured).
+    return out, jnp.sum(out[2])
 
 
 def _zeros_if_symbolic(t, like):
@@ -1102,8 +1108,8 @@ def closure_converted(L: Callable, dtype):
     closes over no tracer, `L_c` is `L` itself, so the compiled
     kernel is found again on the next call with the same `L`.
     """
-    z = jnp.zeros((1,), dtype)
-    converted, consts = jax.closure_convert(L, z, z, jnp.zeros((), dtype))
+    z = np.zeros((1,), dtype)  # (NumPy: `jnp.zeros` compiles on a first call)
+    converted, consts = jax.closure_convert(L, z, z, np.zeros((), dtype))
     if not consts:
         return L, []
     return converted, list(consts)
@@ -1228,7 +1234,7 @@ def sweep_periods(
         return _sweep_call(L_c, cfg, devices, q, consts, rtol, atol, t_max, energy_tol)
 
     if progress is None:
-        periods, status, steps, executed, estimate = run(q0)
+        (periods, status, steps, executed, estimate), useful = run(q0)
     else:
         # Pieces of one size (one compilation), padded with the last release point.
         size = max(chunk_size * len(devices) * 4, -(-n // 20))
@@ -1236,18 +1242,19 @@ def sweep_periods(
         padded = jnp.concatenate([q0, jnp.broadcast_to(q0[-1], (pieces * size - n,))])
         outs = []
         for k in range(pieces):
-            outs.append(run(padded[k * size : (k + 1) * size]))
+            outs.append(run(padded[k * size : (k + 1) * size])[0])
             jax.block_until_ready(outs[-1])
             progress(min((k + 1) * size, n), n)
         periods, status, steps, estimate = (
             jnp.concatenate([o[i] for o in outs])[:n] for i in (0, 1, 2, 4)
         )
         executed = sum(o[3] for o in outs)
+        useful = jnp.sum(steps)
     return SweepResult(
         periods=periods,
         status=status,
         num_steps=steps,
-        lane_steps_useful=jnp.sum(steps),
+        lane_steps_useful=useful,
         lane_steps_executed=jnp.asarray(executed),
         chunk_size=chunk_size,
         num_devices=len(devices),
