@@ -17,9 +17,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import numpy as np
 
 from ._checks import check_solvable, prepare as _prepare
 from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
+from ._fusion import one_fusion
 from ._scalarize import scalarized
 
 
@@ -113,9 +115,30 @@ def _accelerations(L, q, qdot, t, force=None):
         # splits it into many fusions that recompute shared terms), so larger n
         # stays as it was.
         qddot, M, ok = scalarized(solve, q, qdot, t)
+        # One loop for all of them: without it XLA copies the whole scalar program
+        # (its sines and cosines) into every fusion that reads an entry of qddot or
+        # ok. Inside a Tsit5 stage loop that was four copies for a particle-style
+        # double pendulum, 1.5-1.7x a hand-written EOM; one copy measured 0.6-0.7x
+        # (benchmarks/eom_overhead.py). Entry by entry: a variadic reduce needs
+        # operands of one shape, and stacking qddot first measured 1.1x, not 0.6x.
+        qddot, M, ok = _fused_entries(qddot, M, ok)
     else:
         qddot, M, ok = solve(q, qdot, t)
     return qddot, (M, ok)
+
+
+def _fused_entries(*arrays):
+    """The same small arrays, every entry an output of one fusion (`one_fusion`)."""
+    values = {
+        (k, i): x[i] for k, x in enumerate(arrays) for i in np.ndindex(x.shape)
+    }
+    values = one_fusion(values)
+    return tuple(
+        jnp.stack([values[k, i] for i in np.ndindex(x.shape)]).reshape(x.shape)
+        if x.ndim
+        else values[k, ()]
+        for k, x in enumerate(arrays)
+    )
 
 
 # Compiled once per (L, force, shapes): eager calls skip op-by-op dispatch.
