@@ -138,9 +138,7 @@ def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
 
 def _fused_entries(*arrays):
     """The same small arrays, every entry an output of one fusion (`one_fusion`)."""
-    values = {
-        (k, i): x[i] for k, x in enumerate(arrays) for i in np.ndindex(x.shape)
-    }
+    values = {(k, i): x[i] for k, x in enumerate(arrays) for i in np.ndindex(x.shape)}
     values = one_fusion(values)
     return tuple(
         jnp.stack([values[k, i] for i in np.ndindex(x.shape)]).reshape(x.shape)

@@ -203,6 +203,7 @@ def test_jit_vmap_equal_loop(key):
     )
     np.testing.assert_allclose(got, loop, rtol=1e-14, atol=1e-14)
 
+
 def _particle_double_pendulum(m1=1.0, m2=2.0, l1=1.0, l2=0.7, g=9.81):
     # Written as people write it from particles: velocity vectors, T = ½ m v·v.
     def L(q, qdot, t):
