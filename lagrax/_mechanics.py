@@ -17,9 +17,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import numpy as np
 
 from ._checks import check_solvable, prepare as _prepare
 from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
+from ._fusion import one_fusion
 from ._scalarize import scalarized
 
 
@@ -94,8 +96,11 @@ def _solve_definite(M, rhs):
     return x, ok
 
 
-def _accelerations(L, q, qdot, t, force=None):
-    """Unchecked core of `accelerations`: NaN where the mass matrix is degenerate."""
+def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
+    """Unchecked core of `accelerations`: NaN where the mass matrix is degenerate.
+
+    `fuse`: compute `qddot`, `M` and `ok` in one XLA fusion (`one_fusion`), for
+    n <= 2; default: for n == 2 only (see below)."""
 
     def solve(q, qdot, t):
         M, rhs = _lagrange_terms(L, q, qdot, t)
@@ -104,7 +109,8 @@ def _accelerations(L, q, qdot, t, force=None):
         qddot, ok = _solve_definite(M, rhs)
         return jnp.where(ok, qddot, jnp.nan), M, ok
 
-    if q.shape[0] <= 2:
+    n = q.shape[0]
+    if n <= 2:
         # Derivatives and closed-form solve evaluated entry by entry (`_scalarize`):
         # under `vmap` one fused loop over the lanes instead of 12-20 joined by
         # pads, concatenates and small reductions; 3-8x faster for a double
@@ -113,9 +119,33 @@ def _accelerations(L, q, qdot, t, force=None):
         # splits it into many fusions that recompute shared terms), so larger n
         # stays as it was.
         qddot, M, ok = scalarized(solve, q, qdot, t)
+        # XLA copies the whole scalar program (its sines and cosines) into every
+        # fusion that reads an entry of qddot or ok: in a Tsit5 stage loop, four
+        # copies for a particle-style double pendulum, 1.5-1.8x a hand-written EOM;
+        # fused, one copy and 0.63x (benchmarks/eom_overhead.py, one core, 256
+        # lanes, fixed steps). Entry by entry because a variadic reduce needs
+        # operands of one shape (stacking qddot first kept two copies: 1.1x).
+        # Not by default for n == 1, though it measured as well there (cycloid
+        # 1.8x -> 1.3x, pendulum 1.0x -> 0.63x): the period kernel's Taylor
+        # recurrences (`_taylor.py`) read this 1-DOF jaxpr and have no rule for
+        # the `reduce`; callers that only run it through XLA pass `fuse=True`.
+        if (n == 2) if fuse is None else fuse:
+            qddot, M, ok = _fused_entries(qddot, M, ok)
     else:
         qddot, M, ok = solve(q, qdot, t)
     return qddot, (M, ok)
+
+
+def _fused_entries(*arrays):
+    """The same small arrays, every entry an output of one fusion (`one_fusion`)."""
+    values = {(k, i): x[i] for k, x in enumerate(arrays) for i in np.ndindex(x.shape)}
+    values = one_fusion(values)
+    return tuple(
+        jnp.stack([values[k, i] for i in np.ndindex(x.shape)]).reshape(x.shape)
+        if x.ndim
+        else values[k, ()]
+        for k, x in enumerate(arrays)
+    )
 
 
 # Compiled once per (L, force, shapes): eager calls skip op-by-op dispatch.

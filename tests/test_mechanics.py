@@ -203,6 +203,7 @@ def test_jit_vmap_equal_loop(key):
     )
     np.testing.assert_allclose(got, loop, rtol=1e-14, atol=1e-14)
 
+
 def _particle_double_pendulum(m1=1.0, m2=2.0, l1=1.0, l2=0.7, g=9.81):
     # Written as people write it from particles: velocity vectors, T = ½ m v·v.
     def L(q, qdot, t):
@@ -287,3 +288,61 @@ def test_scalarize_structural_primitives(key):
     X, Y = jax.random.normal(key, (2, 4, 3))
     for got, want in zip(batched(X, Y), jax.vmap(f)(X, Y), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_fused_accelerations_identical(key, n):
+    # `one_fusion` changes how XLA schedules the work, not the arithmetic: the same
+    # values to round-off (XLA may contract or reorder differently inside the one
+    # loop) under jit/vmap, NaN lanes (a singular M) kept, and the same derivatives
+    # (its JVP is the identity) forward and reverse.
+    from lagrax._mechanics import _accelerations
+
+    def L(q, qdot, t):  # M proportional to q_0^2: singular where q_0 = 0
+        v = jnp.cumsum(jnp.stack([qdot * jnp.cos(q), qdot * jnp.sin(q)], -1), 0)
+        return 0.5 * jnp.sum(v * v) * q[0] ** 2 + jnp.sum(jnp.cos(q)) * (1 + t)
+
+    q, qdot = random_states(key, n, 32)
+    q = q.at[0, 0].set(0.0)  # one lane with a singular mass matrix
+
+    def run(fuse):
+        def acc(q, qdot, t):
+            qddot, (M, ok) = _accelerations(L, q, qdot, t, fuse=fuse)
+            return qddot, M, ok
+
+        return jax.jit(jax.vmap(acc, (0, 0, None)))(q, qdot, 0.3)
+
+    fused, unfused = run(True), run(False)
+    for got, want in zip(fused, unfused, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+    np.testing.assert_array_equal(fused[2], unfused[2])
+    assert not fused[2][0] and jnp.all(jnp.isnan(fused[0][0]))
+    assert jnp.all(fused[2][1:]) and jnp.all(jnp.isfinite(fused[0][1:]))
+
+    def total(q, fuse):
+        return jnp.sum(_accelerations(L, q, qdot[1], 0.3, fuse=fuse)[0])
+
+    for transform in (jax.grad, jax.jacfwd):
+        np.testing.assert_allclose(
+            jax.jit(transform(lambda q: total(q, True)))(q[1]),
+            jax.jit(transform(lambda q: total(q, False)))(q[1]),
+            rtol=1e-12,
+            atol=1e-12,
+        )
+
+
+def test_one_fusion_is_the_identity():
+    from lagrax._fusion import one_fusion
+
+    values = dict(
+        x=jnp.array([0.0, -0.0, 1.5, jnp.inf, -jnp.inf, jnp.nan]),
+        i=jnp.arange(6, dtype=jnp.int32) - 3,
+        b=jnp.array([True, False] * 3),
+    )
+    out = jax.jit(one_fusion)(values)
+    assert out.keys() == values.keys()
+    for k, v in values.items():
+        assert out[k].dtype == v.dtype
+        np.testing.assert_array_equal(out[k], v)
+    # Signed zeros survive (-0.0 + 0.0 would be +0.0).
+    np.testing.assert_array_equal(jnp.signbit(out["x"]), jnp.signbit(values["x"]))

@@ -1,0 +1,71 @@
+r"""Make XLA compute several values in one loop, so that shared work is done once.
+
+XLA on a CPU fuses elementwise work into loops, but a fusion has one output: a cheap
+subprogram whose result several fusions consume is copied into each of them (there
+is no multi-output fusion here unless a backend flag turns it on, and that flag
+crashed on the sweep kernel). A vectorized program whose outputs share their
+expensive part (sines and cosines, a recurrence) then computes that part once per
+output. `one_fusion` routes the values through one variadic `lax.reduce`, which XLA
+compiles as one loop with several outputs.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def one_fusion(values: dict) -> dict:
+    r"""The same arrays, computed by XLA in one loop over their entries.
+
+    Each value is stacked with the reducer's identity ($-0.0$ for floats, $0$ for
+    integers, False for booleans) and reduced over that new axis of length 2 by one
+    variadic `lax.reduce`: exact ($-0.0 + x$ is $x$ for every float $x$, NaN and
+    $\pm\infty$ included), and one fusion with many outputs, so everything the values
+    share is computed once. Derivatives pass through unchanged (a `custom_jvp`
+    identity: the reduction's own JVP rule fails on the symbolic zeros of integer
+    tangents).
+
+    Measured (one core of a 2-core AMD EPYC, float64, jax 0.10.2):
+
+    - the sweep kernel's Taylor step, whose step length, position and velocity
+      share one straight-line recurrence: six copies of it per iteration without,
+      ~460 ns per lane-step (4096 lanes); ~110 ns with, within 10% of the same
+      program with a single output. Applied to the whole lane update instead it
+      made no difference for Taylor and cost 30% for Dopri8.
+    - the accelerations of a double pendulum written from particle velocities,
+      inside a fixed-step Tsit5 solve (256 lanes): see `_mechanics._accelerations`.
+
+    **Arguments:** `values`, a dict of arrays (any shapes and dtypes).
+
+    **Returns:** a dict with the same keys and equal values.
+    """
+    keys = list(values)
+    return dict(zip(keys, _fused(*(values[k] for k in keys))))
+
+
+@jax.custom_jvp
+def _fused(*vals):
+    ops, inits = [], []
+    for val in vals:
+        if val.dtype == jnp.bool_:
+            ident = np.bool_(False)
+        elif jnp.issubdtype(val.dtype, jnp.floating):
+            ident = np.array(-0.0, val.dtype)
+        else:
+            ident = np.array(0, val.dtype)
+        ops.append(jnp.stack([val, jnp.full_like(val, ident)]))
+        inits.append(ident)
+
+    def reducer(a, b):
+        return tuple(
+            ai | bi if ai.dtype == jnp.bool_ else ai + bi for ai, bi in zip(a, b)
+        )
+
+    return tuple(jax.lax.reduce(ops, inits, reducer, (0,)))
+
+
+@_fused.defjvp
+def _fused_jvp(primals, tangents):
+    # The identity: tangents pass through (the reduction's own rule chokes on the
+    # symbolic zeros of integer fields).
+    return _fused(*primals), tuple(tangents)
