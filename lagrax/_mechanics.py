@@ -100,7 +100,7 @@ def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
     """Unchecked core of `accelerations`: NaN where the mass matrix is degenerate.
 
     `fuse`: compute `qddot`, `M` and `ok` in one XLA fusion (`one_fusion`), for
-    n <= 2; default: for n == 2 only (see below)."""
+    n <= 2 (the default; see below)."""
 
     def solve(q, qdot, t):
         M, rhs = _lagrange_terms(L, q, qdot, t)
@@ -125,11 +125,11 @@ def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
         # fused, one copy and 0.63x (benchmarks/eom_overhead.py, one core, 256
         # lanes, fixed steps). Entry by entry because a variadic reduce needs
         # operands of one shape (stacking qddot first kept two copies: 1.1x).
-        # Not by default for n == 1, though it measured as well there (cycloid
-        # 1.8x -> 1.3x, pendulum 1.0x -> 0.63x): the period kernel's Taylor
-        # recurrences (`_taylor.py`) read this 1-DOF jaxpr and have no rule for
-        # the `reduce`; callers that only run it through XLA pass `fuse=True`.
-        if (n == 2) if fuse is None else fuse:
+        # The same for n == 1 (cycloid 1.8x -> 1.3x, pendulum 1.0x -> 0.63x);
+        # the Taylor recurrences, which read this jaxpr, see the identity
+        # (`fusion_off`). In the period kernel it measured neutral (Dopri8 and
+        # Taylor, 4096 amplitudes, one core).
+        if (n <= 2) if fuse is None else fuse:
             qddot, M, ok = _fused_entries(qddot, M, ok)
     else:
         qddot, M, ok = solve(q, qdot, t)

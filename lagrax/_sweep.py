@@ -17,7 +17,7 @@ With `solver=lagrax.Taylor()` the step is a Taylor expansion of order K instead
 (`_taylor_step`): coefficients by recurrence from the acceleration's jaxpr
 (`lagrax._taylor`), written out order by order, the step length chosen from the last
 coefficients before the step is taken (never rejected), and the step's outputs
-forced into ONE fused loop over the lanes (`_one_fusion`): XLA on a CPU otherwise
+forced into ONE fused loop over the lanes (`one_fusion`): XLA on a CPU otherwise
 duplicates the shared recurrence into each consumer. Measured on the pendulum (one
 core, rtol 1e-14): ~9 lane-steps per quarter period against ~26 for Dopri8, at
 ~180-200 ns each, of which the step itself (vectorized, ~1000 flops per lane) is
@@ -56,6 +56,7 @@ from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array, Float, Int
 
 from ._checks import as_real_array, check_callable, check_devices, positive_int
+from ._fusion import one_fusion
 from ._mechanics import _accelerations, _jacobi
 from ._period import _check_options
 from ._results import (
@@ -124,55 +125,6 @@ def stepper(solver) -> "_Tableau | Taylor | None":
     return explicit_tableau(solver)
 
 
-def _one_fusion(values: dict) -> dict:
-    """The same `(W,)` arrays, computed by XLA in one loop over the lanes.
-
-    XLA on a CPU copies a cheap subprogram into every fusion that consumes it (it has
-    no multi-output fusion unless a backend flag turns it on, and that flag crashed
-    on this kernel): the Taylor step's h, x and v all depend on one straight-line
-    recurrence, and its three outputs and four `pow`s made six copies of it per
-    iteration (measured: ~460 ns per lane-step for the step alone, 4096 lanes, one
-    core). A variadic `reduce` is one fusion with many outputs: each value is
-    stacked with the reducer's identity and reduced over that axis of length 2
-    (exact: -0.0 + x is x for every float x), so all come out of one vectorized
-    loop that computes each shared value once (~110 ns, within 10% of the same
-    program with a single output). Applied to the whole lane update it made no
-    difference for Taylor and cost 30% for Dopri8 (measured), so only the step.
-    """
-    keys = list(values)
-    return dict(zip(keys, _fused(*(values[k] for k in keys))))
-
-
-@jax.custom_jvp
-def _fused(*vals):
-    ops, inits = [], []
-    for val in vals:
-        if val.dtype == jnp.bool_:
-            ident = np.bool_(False)
-        elif jnp.issubdtype(val.dtype, jnp.floating):
-            ident = np.array(-0.0, val.dtype)
-        else:
-            ident = np.array(0, val.dtype)
-        ops.append(jnp.stack([val, jnp.full_like(val, ident)]))
-        inits.append(ident)
-
-    def reducer(a, b):
-        return tuple(
-            ai | bi if ai.dtype == jnp.bool_ else ai + bi for ai, bi in zip(a, b)
-        )
-
-    return tuple(jax.lax.reduce(ops, inits, reducer, (0,)))
-
-
-@_fused.defjvp
-def _fused_jvp(primals, tangents):
-    # The identity: tangents pass through (the reduction's own rule chokes on the
-    # symbolic zeros of integer fields). Fusing them too made one fusion of ~16,000
-    # ops of the three of ~7,000-8,500 in a gradient's compiled step: no faster to
-    # compile (measured), so left as is.
-    return _fused(*primals), tuple(tangents)
-
-
 def _log2(n):
     """log2 of a positive float to 0.014 (frexp and a cubic; no libm call): the
     step-length rule's j-th roots need only a few digits."""
@@ -212,7 +164,7 @@ def _taylor_step(spec, coeffs, accel, s, x, v, h_req, free, rtol, atol, cap):
     h = jnp.where(free, jnp.minimum(h_jz, jnp.minimum(cap, spec.max_step)), h_req)
     h = jax.lax.stop_gradient(h)
     x1, v1 = _horner(xs, h), _horner(vs, h)
-    out = _one_fusion(dict(x1=x1, v1=v1, a1=accel(s + h, x1, v1), h=h))
+    out = one_fusion(dict(x1=x1, v1=v1, a1=accel(s + h, x1, v1), h=h))
     return out["x1"], out["v1"], out["a1"], out["h"]
 
 

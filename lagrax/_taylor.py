@@ -46,6 +46,8 @@ import numpy as np
 from jax import lax
 from jax.extend import core as jex_core
 
+from ._fusion import fusion_off
+
 
 __all__ = ["Taylor", "taylor_coefficients"]
 
@@ -1049,7 +1051,8 @@ def taylor_coefficients(
 
         scalar = jax.ShapeDtypeStruct((), dtype)
         specs = [jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype) for leaf in leaves]
-        closed = jax.make_jaxpr(flat)(scalar, scalar, scalar, *specs)
+        with fusion_off():  # (an identity for XLA; no recurrence rule for it)
+            closed = jax.make_jaxpr(flat)(scalar, scalar, scalar, *specs)
         out = closed.out_avals
         if len(out) != 1 or out[0].shape != ():
             raise TypeError(
@@ -1057,13 +1060,16 @@ def taylor_coefficients(
             )
         prog = _Program(closed, len(leaves))
         if unrolled:
-            size = len(
-                jax.make_jaxpr(
-                    lambda *a: _unrolled_coefficients(prog, K, *a[:3], list(a[3:]))
-                )(s, x, v, *leaves).jaxpr.eqns
-            )
-            if size <= _UNROLL_BUDGET:
-                return _unrolled_coefficients(prog, K, s, x, v, leaves)
+            # Traced once: counted against the budget, then evaluated as it is.
+            built, shapes = jax.make_jaxpr(
+                lambda *a: _unrolled_coefficients(prog, K, *a[:3], list(a[3:])),
+                return_shape=True,
+            )(s, x, v, *leaves)
+            if len(built.jaxpr.eqns) <= _UNROLL_BUDGET:
+                flat_out = jax.core.eval_jaxpr(
+                    built.jaxpr, built.consts, s, x, v, *leaves
+                )
+                return jax.tree.unflatten(jax.tree.structure(shapes), flat_out)
         return _coefficients(prog, K, s, x, v, leaves)
 
     return coeffs
