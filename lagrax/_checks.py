@@ -302,18 +302,15 @@ def _concrete(x):
     return x if is_concrete(x) else np.zeros(jnp.shape(x), jnp.result_type(x))
 
 
-_DYNAMIC_INDEXING = frozenset(
-    {"gather", "dynamic_slice", "dynamic_update_slice", "scatter", "scatter-add"}
-)
+_DYNAMIC_INDEXING = frozenset({"gather", "dynamic_slice", "dynamic_update_slice"})
 
 
 def _indexes_dynamically(jaxpr) -> bool:
     """Whether `jaxpr` (or a jaxpr nested in it) gathers, scatters or slices at
     indices known only at run time."""
     for eqn in jaxpr.eqns:
-        if eqn.primitive.name in _DYNAMIC_INDEXING or eqn.primitive.name.startswith(
-            "scatter"
-        ):
+        name = eqn.primitive.name
+        if name in _DYNAMIC_INDEXING or name.startswith("scatter"):
             return True
         for param in eqn.params.values():
             for sub in param if isinstance(param, tuple | list) else (param,):
