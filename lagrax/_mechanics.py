@@ -99,8 +99,8 @@ def _solve_definite(M, rhs):
 def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
     """Unchecked core of `accelerations`: NaN where the mass matrix is degenerate.
 
-    `fuse`: compute `qddot`, `M` and `ok` in one XLA fusion (`one_fusion`), for
-    n <= 2 (the default; see below)."""
+    `fuse`: for n <= 2, compute `qddot`, `M` and `ok` in one XLA fusion
+    (`one_fusion`; default on, `False` turns it off; see below). Ignored for n > 2."""
 
     def solve(q, qdot, t):
         M, rhs = _lagrange_terms(L, q, qdot, t)
@@ -129,7 +129,7 @@ def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
         # the Taylor recurrences, which read this jaxpr, see the identity
         # (`fusion_off`). In the period kernel it measured neutral (Dopri8 and
         # Taylor, 4096 amplitudes, one core).
-        if (n <= 2) if fuse is None else fuse:
+        if fuse is not False:  # (None, the default, fuses)
             qddot, M, ok = _fused_entries(qddot, M, ok)
     else:
         qddot, M, ok = solve(q, qdot, t)
