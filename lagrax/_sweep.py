@@ -551,12 +551,18 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
         lane, free, pending = carry[:3]
         return jnp.any((lane["idx"] < n) | (free & (pending < n)))
 
-    lane = load(jnp.arange(W, dtype=jnp.int32))
+    # Every lane starts free with its first amplitude pending: the first iteration's
+    # refill loads it, so no copy of `load` is compiled outside the loop (25 fewer
+    # fusions for "matched", each ~15-20 ms of compile time; the same numbers).
+    first = jnp.arange(W, dtype=jnp.int32)
+    lane = jax.tree.map(
+        lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(load, first)
+    )
     out = jnp.zeros((n, len(_OUT)), dtype)
     # Lanes that could not start are recorded at the end of the first iteration.
-    no = jnp.zeros(W, bool)
+    free = jnp.ones(W, bool)
     nxt, it = jnp.asarray(W, jnp.int32), jnp.zeros((), jnp.int32)
-    init = (lane, no, jnp.full(W, n, jnp.int32), out, nxt, it)
+    init = (lane, free, first, out, nxt, it)
     lane, _, _, out, _, iterations = jax.lax.while_loop(cond, body, init)
     out = {k: out[:, i] for i, k in enumerate(_OUT)}
     out["raw"] = out["raw"].astype(jnp.int32)
