@@ -14,9 +14,10 @@ after the other):
 - the naive diffrax baseline: hand-written `-sin θ`, Dopri8, `Event` with Newton root
   finding, one unsorted `jit(vmap(diffeqsolve))` batch;
 - lagrax `sweep_periods`, methods "quarter", "half" and "matched" (the default), at
-  rtol = atol = 1e-12 … 1e-14, with `Dopri8` (the default solver) and `lagrax.Taylor()`
-  (order 20), with the per-lane error estimate off (the kernel alone) and on (the
-  default), on one core (one JAX device, `taskset` to core 0) and on the whole
+  rtol = atol = 1e-12 … 1e-14, with `Dopri8` and `lagrax.Taylor()` (order 20; the
+  default solver `Taylor(fallback=Dopri8())` resolves to it for the pendulum), with
+  the per-lane error estimate off (the kernel alone) and on (the default), and with
+  every default (the "default" row), on one core (one JAX device, `taskset` to core 0) and on the whole
   machine (one JAX device per core).
 
 For every lagrax row it prints periods/s, max relative error, steps per lane, the
@@ -300,6 +301,7 @@ def work_jax(args):
         ("matched", 1e-13, False, taylor),
         ("matched", 1e-14, False, taylor),
         ("matched", 1e-14, True, taylor),
+        ("matched", 1e-13, True, None),  # every default: Taylor(fallback=Dopri8())
     ]
     if args.quick:
         configs = [c for c in configs if c[1] == 1e-13]
@@ -311,7 +313,7 @@ def work_jax(args):
             rtol=tol,
             atol=tol,
             error_estimate=estimate,
-            solver=solver,
+            **({} if solver is None else {"solver": solver}),
         )
         jax.clear_caches()
         t0 = time.perf_counter()
@@ -321,7 +323,9 @@ def work_jax(args):
         steps = float(np.mean(np.asarray(res.num_steps)))
         executed = float(res.lane_steps_executed)
         label = "" if estimate else ", no estimate"
-        name = "Taylor-20" if solver is taylor else "Dopri8"
+        name = {id(taylor): "Taylor-20", id(dopri8): "Dopri8"}.get(
+            id(solver), f"default ({type(res.solver).__name__})"
+        )
         rows.append(
             _row(
                 f"lagrax {name} {method} rtol {tol:g}{label}, {where}",

@@ -36,7 +36,7 @@ import time
 from dataclasses import dataclass, field
 
 
-_SOLVERS = ("dopri8", "dopri5", "tsit5", "taylor")
+_SOLVERS = ("auto", "taylor", "dopri8", "dopri5", "tsit5")
 _BLOCK_CHUNKS = 4  # chunks per device in a checkpoint/progress block
 _QUADRATURE_BLOCK = 2048  # release points per quadrature call (bounded memory)
 _PROBE_DOF = 6  # coordinates tried when telling the user how many L has
@@ -110,7 +110,13 @@ def _parser():
         help="largest amplitude (default π − 1e-3 pendulum, π cycloid; required for "
         "your own L)",
     )
-    s.add_argument("--solver", default="dopri8", choices=_SOLVERS)
+    s.add_argument(
+        "--solver",
+        default="auto",
+        choices=_SOLVERS,
+        help="auto (default): the library's default, Taylor where L's equations allow "
+        "it, Dopri8 otherwise",
+    )
     s.add_argument("--rtol", type=float, default=1e-13)
     s.add_argument("--atol", type=float, default=1e-13)
     s.add_argument(
@@ -872,6 +878,7 @@ def _sweep(target, args, devices, blocks, targets, bar):
     import lagrax
 
     solver = {
+        "auto": lambda: lagrax.Taylor(fallback=dfx.Dopri8()),
         "dopri8": dfx.Dopri8,
         "dopri5": dfx.Dopri5,
         "tsit5": dfx.Tsit5,
@@ -883,6 +890,7 @@ def _sweep(target, args, devices, blocks, targets, bar):
     q0 = np.asarray(q0, dtype=np.float64)
     kwargs = {} if args.max_steps is None else {"max_steps": args.max_steps}
     parts = []
+    stepped = None  # the solver that ran (the default resolves per L)
     start = time.perf_counter()
     for b in range(blocks.n_blocks[target.name]):
         sl = slice(b * blocks.block, min((b + 1) * blocks.block, args.count))
@@ -908,6 +916,7 @@ def _sweep(target, args, devices, blocks, targets, bar):
                 progress=progress if bar.active else None,
                 **kwargs,
             )
+            stepped = res.solver
             part = {
                 "period": np.asarray(res.periods),
                 "status": np.asarray(res.status),
@@ -931,6 +940,7 @@ def _sweep(target, args, devices, blocks, targets, bar):
         "q0": q0,
         "seconds": elapsed,
         "target": target,
+        "solver": None if stepped is None else type(stepped).__name__,
     }
     for key in ("period", "status", "steps"):
         r[key] = np.concatenate([p[key] for p in parts])
@@ -1047,7 +1057,9 @@ def _table(results, rows):
         if "error_estimate" in r and ok.any():
             accuracy += f", max error estimate {np.nanmax(r['error_estimate'][ok]):.1e}"
         lines.append(
-            f"{r['system']}: {len(ok)} amplitudes, {int((~ok).sum())} failed, "
+            f"{r['system']}: {len(ok)} amplitudes"
+            + (f" ({r['solver']})" if r.get("solver") else "")
+            + f", {int((~ok).sum())} failed, "
             f"{accuracy}, {r['seconds']:.2f} s (compile included), useful lane-steps "
             f"{r['useful_fraction']:.0%}"
         )

@@ -56,6 +56,7 @@ from ._results import (
     status_result,
     SUCCESS,
 )
+from ._taylor import Taylor
 
 
 _METHODS = ("matched", "half", "full", "quarter")
@@ -76,7 +77,6 @@ def _check_options(L, dtype, solver, rtol, atol, t_max, energy_tol, max_steps, m
     """The checks `period` and `sweep_periods` share, run once per call."""
     check_one_dof(L, dtype)
     from ._sweep import stepper
-    from ._taylor import Taylor
 
     check_instance(
         solver,
@@ -113,7 +113,7 @@ def period(
     L: Lagrangian,
     q0: RealScalarLike,
     *,
-    solver: dfx.AbstractAdaptiveSolver = dfx.Dopri8(),
+    solver: "dfx.AbstractAdaptiveSolver | Taylor" = Taylor(fallback=dfx.Dopri8()),
     rtol: RealScalarLike = 1e-13,
     atol: RealScalarLike = 1e-13,
     max_steps: int = 4096,
@@ -157,11 +157,11 @@ def period(
         `not_symmetric` instead of a wrong number.
 
     This runs on the same kernel as `sweep_periods` (one lane), and gives the same
-    numbers; `solver` is a diffrax explicit Runge–Kutta solver, whose tableau the
-    kernel steps through, or `lagrax.Taylor()`, a Taylor integrator whose coefficients
-    come by recurrence from the acceleration's jaxpr (heyoka.py's method; ~3x fewer
-    steps per period than `Dopri8` on the pendulum, ~1.9x the speed; see
-    `lagrax.Taylor`).
+    numbers; `solver` is `lagrax.Taylor()` (by default, where L allows it), a Taylor
+    integrator whose coefficients come by recurrence from the acceleration's jaxpr
+    (heyoka.py's method; ~3x fewer steps per period than `Dopri8` on the pendulum,
+    ~3.5-4x the speed; see `lagrax.Taylor`), or a diffrax explicit Runge–Kutta
+    solver, whose tableau the kernel steps through.
 
     Plain JAX: works under `jit`, `vmap` and `grad` (with respect to `q0` and to any
     parameter `L` closes over). For many amplitudes at once use `sweep_periods`.
@@ -172,8 +172,11 @@ def period(
         `(1,)`).
     - `q0`: the release point (the amplitude, in the coordinate `L` is written in), a
         scalar or shape `(1,)`.
-    - `solver`: an adaptive explicit Runge–Kutta diffrax solver (default `Dopri8()`;
-        `Tsit5()`, `Dopri5()`, … work too), or `lagrax.Taylor()`.
+    - `solver`: `lagrax.Taylor()`, or an adaptive explicit Runge–Kutta diffrax solver
+        (`Dopri8()`, `Tsit5()`, `Dopri5()`, …). Default `Taylor(fallback=Dopri8())`:
+        the Taylor integrator where every primitive of L's acceleration has a
+        recurrence (the systems in `lagrax.systems` and the usual elementary
+        functions), `Dopri8()` otherwise.
     - `rtol`, `atol`: tolerances, in the lane's own units (lengths in $|q_0|$, times
         in $\sqrt{|q_0|/|\ddot q(q_0)|}$): small amplitudes keep relative accuracy.
     - `max_steps`: the most steps for one swing.
@@ -221,12 +224,12 @@ def period(
     rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    from ._sweep import one_lane, stepper
+    from ._sweep import one_lane, resolve_solver, stepper
 
     T, status, estimate = one_lane(
         L,
         q0,
-        stepper(solver),
+        stepper(resolve_solver(solver, L, q0.dtype)),
         method,
         max_steps,
         rtol,

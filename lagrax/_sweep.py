@@ -261,6 +261,41 @@ def _lane_scales(L, q0, consts):
     return r["valid"], r["Qs"], r["tau"], r["sigma"]
 
 
+def _scaled_acceleration(L, consts):
+    """The acceleration in a lane's own units: `accel(q0, Qs, tau, s, x, v)`."""
+
+    def accel_one(q0, Qs, tau, s, x, v):
+        Vs, As = Qs / tau, Qs / tau**2
+        qddot, _ = _accelerations(
+            lambda q, qd, t: L(q, qd, t, *consts),
+            (q0 + Qs * x)[None],
+            (Vs * v)[None],
+            tau * s,
+        )
+        return qddot[0] / As
+
+    return accel_one
+
+
+def resolve_solver(solver, L, dtype):
+    """The solver the kernel steps with: `Taylor(fallback=...)` is a plain `Taylor`
+    where every primitive of L's acceleration has a recurrence, its fallback where
+    one has none (decided from the jaxpr, once per call; nothing is evaluated)."""
+    if not (isinstance(solver, Taylor) and solver.fallback is not None):
+        return solver
+    accel_one = _scaled_acceleration(L, ())
+    scalar = jax.ShapeDtypeStruct((), dtype)
+    plain = Taylor(order=solver.order, max_step=solver.max_step)
+    supported = plain.supports(
+        lambda s, x, v, q0, Qs, tau: accel_one(q0, Qs, tau, s, x, v),
+        dtype,
+        scalar,
+        scalar,
+        scalar,
+    )
+    return plain if supported else solver.fallback
+
+
 def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
     """All amplitudes `q0s` (shape (n,)) through `cfg.width` refilling lanes.
 
@@ -279,15 +314,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
     taylor = isinstance(tab, Taylor)
     expo = 1.0 / (tab.order if taylor else tab.error_order)
 
-    def accel_one(q0, Qs, tau, s, x, v):
-        Vs, As = Qs / tau, Qs / tau**2
-        qddot, _ = _accelerations(
-            lambda q, qd, t: L(q, qd, t, *consts),
-            (q0 + Qs * x)[None],
-            (Vs * v)[None],
-            tau * s,
-        )
-        return qddot[0] / As
+    accel_one = _scaled_acceleration(L, consts)
 
     # Traced once and reused by every call site (13 per Dopri8 step, the refinement,
     # the refill): tracing the scalarized equations anew at each cost ~13 ms apiece.
@@ -1102,7 +1129,7 @@ def sweep_periods(
     L,
     q0,
     *,
-    solver: dfx.AbstractAdaptiveSolver = dfx.Dopri8(),
+    solver: "dfx.AbstractAdaptiveSolver | Taylor" = Taylor(fallback=dfx.Dopri8()),
     rtol=1e-13,
     atol=1e-13,
     max_steps: int = 4096,
@@ -1122,21 +1149,25 @@ def sweep_periods(
     device: `chunk_size` lanes step together, and a lane that finishes takes the next
     release point from a queue inside the loop, so no lane waits for the slowest and the
     order of `q0` does not matter (`useful_fraction` is typically 0.95–0.98). The step
-    is the `solver`'s explicit Runge–Kutta step written out stage by stage from its
-    diffrax tableau, with diffrax's step-size rule, or with `solver=lagrax.Taylor()`
-    an order-20 Taylor step (~1.9x the periods per second of `Dopri8` on the
-    pendulum, at the same or better accuracy: `benchmarks/sweep.py`); events are
-    located by re-stepping with the step length as the unknown (module docstring of
-    `lagrax._sweep`).
+    is, by default, an order-20 Taylor step (`lagrax.Taylor`: ~3.5-4x the periods per
+    second of `Dopri8` on the pendulum, at the same or better accuracy:
+    `benchmarks/sweep.py`), or where L's acceleration has a primitive without a Taylor
+    recurrence, or with an explicit `solver=diffrax.Dopri8()` (any adaptive explicit
+    Runge–Kutta pair), that solver's step written out stage by stage from its diffrax
+    tableau, with diffrax's step-size rule; `SweepResult.solver` says which. Events
+    are located by re-stepping with the step length as the unknown (module docstring
+    of `lagrax._sweep`).
     Amplitudes and tolerances are arrays: changing them never recompiles.
 
     Each period comes with an error estimate (`error_estimate=True`, the default): the
     sweep is solved a second time, in the same queue, at 10x looser tolerances (for
     `"matched"`, from the far turning point moved across the band within which
     float64 rounding of $L$ leaves it undetermined), and the estimate is 3 times the
-    relative difference plus 64 ulps. Validated with `Dopri8` (the default) against
-    exact periods (pendulum, cycloid, asymmetric well against `quadrature_period`,
-    random wells): never below the true error, ~25x above it at the median. With
+    relative difference plus 64 ulps. Validated with `Taylor()` and `Dopri8` against
+    exact periods (pendulum, cycloid, the asymmetric well to 0.99 of its hump against
+    a 40-digit quadrature, random wells against `quadrature_period`): never below the
+    true error, ~25x above it at the median (up to ~200x where "half" integrates
+    through the bottom near a separatrix, whose rounding loss is random). With
     lower-order pairs (`Tsit5`, `Dopri5`) its calibration is not established: it was
     measured below the true error on some lanes (0.47x). A lane whose estimate exceeds
     100 rtol gets status `tolerance_not_met` and no number. The second solve costs
@@ -1195,8 +1226,9 @@ def sweep_periods(
     devices = check_devices(jax.devices() if devices is None else devices)
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
-    tab = stepper(solver)
     dtype = q0.dtype
+    solver = resolve_solver(solver, L, dtype)
+    tab = stepper(solver)
     cfg = _Method(tab, method, chunk_size, max_steps, bool(error_estimate))
     L_c, consts = closure_converted(L, dtype)
     n = q0.shape[0]
@@ -1230,6 +1262,7 @@ def sweep_periods(
         chunk_size=chunk_size,
         num_devices=len(devices),
         error_estimate=estimate if error_estimate else None,
+        solver=solver,
     )
 
 
@@ -1248,6 +1281,10 @@ class SweepResult(eqx.Module):
         adaptive loop steps every lane of a chunk until its slowest lane is done, and
         pads the last chunk).
     - `chunk_size`: lanes per chunk and device; `num_devices`: devices used.
+    - `error_estimate`: the per-lane estimate of the relative error (None when not
+        asked for).
+    - `solver`: the solver that stepped the lanes (for the default
+        `Taylor(fallback=Dopri8())`, the plain `Taylor()` or its fallback).
     """
 
     periods: Float[Array, " n"]
@@ -1258,6 +1295,7 @@ class SweepResult(eqx.Module):
     chunk_size: int = eqx.field(static=True)
     num_devices: int = eqx.field(static=True)
     error_estimate: Float[Array, " n"] | None = None
+    solver: object = eqx.field(static=True, default=None)
 
     @property
     def useful_fraction(self) -> Array:

@@ -39,6 +39,7 @@ Design, measured (`benchmarks/taylor_coefficients.py`):
 
 from collections.abc import Callable
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -1096,9 +1097,11 @@ class Taylor(eqx.Module):
     a secant on the step length, as for Runge–Kutta solvers.
 
     Only for the period kernel (not a diffrax solver). The acceleration's jaxpr must
-    consist of primitives with a recurrence (`taylor_coefficients` lists them):
-    others raise `NotImplementedError` naming the primitive at the first call; use a
-    diffrax solver (`diffrax.Dopri8()`) there.
+    consist of primitives with a recurrence (`taylor_coefficients` lists them). For
+    one that has none, `Taylor()` raises `NotImplementedError` naming the primitive
+    at the first call, and `Taylor(fallback=diffrax.Dopri8())` (the default solver of
+    `period` and `sweep_periods`) steps with the fallback instead; which one ran is
+    `SweepResult.solver`.
 
     **Arguments:**
 
@@ -1106,6 +1109,9 @@ class Taylor(eqx.Module):
         picks for float64 at its default tolerance; $K \geq 2$).
     - `max_step`: the longest step in the lane's units of time, $\sqrt{|q_0| /
         |\ddot q_0|}$ (default 2, a third of a small oscillation's period).
+    - `fallback`: `None` (default), or an adaptive explicit Runge–Kutta diffrax
+        solver to step with where the acceleration has a primitive without a
+        recurrence.
 
     **Example:**
 
@@ -1117,6 +1123,7 @@ class Taylor(eqx.Module):
 
     order: int = eqx.field(static=True, default=20)
     max_step: float = eqx.field(static=True, default=2.0)
+    fallback: "dfx.AbstractERK | None" = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not isinstance(self.order, int) or isinstance(self.order, bool):
@@ -1127,3 +1134,29 @@ class Taylor(eqx.Module):
             raise ValueError(
                 f"`max_step` must be a positive finite number; got {self.max_step!r}."
             )
+        if self.fallback is not None and not (
+            isinstance(self.fallback, dfx.AbstractERK)
+            and getattr(type(self.fallback).tableau, "b_error", None) is not None
+        ):
+            raise TypeError(
+                "`fallback` must be None or an adaptive explicit Runge–Kutta diffrax "
+                f"solver, e.g. diffrax.Dopri8(); got {self.fallback!r}."
+            )
+
+    def supports(self, accel: Callable, dtype, *params) -> bool:
+        """Whether `taylor_coefficients` has a recurrence for every primitive of
+        `accel(s, x, v, *params)` (scalars `s, x, v`; `params` shape-dtype specs or
+        arrays without a lane axis): traced once, nothing is evaluated."""
+        lanes = [
+            jax.ShapeDtypeStruct((1, *np.shape(p)), jnp.asarray(p).dtype)
+            if not isinstance(p, jax.ShapeDtypeStruct)
+            else jax.ShapeDtypeStruct((1, *p.shape), p.dtype)
+            for p in params
+        ]
+        one = jax.ShapeDtypeStruct((1,), dtype)
+        coeffs = taylor_coefficients(lambda s, x, v, p: accel(s, x, v, *p), 2, dtype)
+        try:
+            jax.eval_shape(lambda s, x, v, p: coeffs(s, x, v, p), one, one, one, lanes)
+        except NotImplementedError:
+            return False
+        return True

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 
+import diffrax as dfx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -41,8 +42,12 @@ def _pendulum_with_a_singular_point(q, qdot, t):
 
 
 L = _pendulum_with_a_singular_point
-# One static configuration for every sweep below (compiled once per chunk size).
-OPTIONS = dict(rtol=1e-10, atol=1e-10, max_steps=64)
+# One static configuration for every sweep below (compiled once per chunk size). The
+# mix of failures is built on Dopri8's step counts: it needs > 64 steps up to the hump
+# from π - 1e-9 (max_steps), where Taylor() needs 34 and then reports the energy drift
+# that Dopri8 reports too when given more steps (measured). Taylor's own failing lanes:
+# tests/test_taylor_solver.py.
+OPTIONS = dict(rtol=1e-10, atol=1e-10, max_steps=64, solver=dfx.Dopri8())
 GOOD = np.array([0.3, 1.0, 2.0, 2.9, 0.7, 1.5, -2.5])
 BAD = {
     np.pi - 1e-9: MAX_STEPS,  # the slow approach to the hump takes > 64 steps

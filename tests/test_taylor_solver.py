@@ -1,6 +1,7 @@
 """`lagrax.Taylor` in the period kernel: accuracy against exact periods, every method,
 failing lanes, gradients and errors."""
 
+import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -134,8 +135,11 @@ def test_unsupported_primitive_is_named():
         (dict(order=True), TypeError),
         (dict(max_step=0.0), ValueError),
         (dict(max_step=float("inf")), ValueError),
+        (dict(fallback=3), TypeError),
+        (dict(fallback=lagrax.Taylor()), TypeError),
+        (dict(fallback=dfx.Kvaerno5()), TypeError),
     ],
 )
 def test_bad_taylor_arguments(kwargs, exc):
-    with pytest.raises(exc, match="order" if "order" in kwargs else "max_step"):
+    with pytest.raises(exc, match=f"`{next(iter(kwargs))}`"):
         lagrax.Taylor(**kwargs)
