@@ -52,6 +52,7 @@ closes over takes one forward pass per parameter.
 """
 
 import functools
+import weakref
 from collections.abc import Callable
 
 import diffrax as dfx
@@ -374,23 +375,35 @@ def _scaled_acceleration(L, consts, fuse=None):
     return accel_one
 
 
+# Whether `Taylor` covers a Lagrangian, per function object (weakly held): the check
+# traces the acceleration (~20 ms), which every eager call would otherwise repeat.
+_TAYLOR_SUPPORT = weakref.WeakKeyDictionary()
+
+
 def resolve_solver(solver, L, dtype):
     """The solver the kernel steps with: `Taylor(fallback=...)` is a plain `Taylor`
     where every primitive of L's acceleration has a recurrence, its fallback where
-    one has none (decided from the jaxpr, once per call; nothing is evaluated)."""
+    one has none (decided from the jaxpr, once per function and dtype; nothing is
+    evaluated)."""
     if not (isinstance(solver, Taylor) and solver.fallback is not None):
         return solver
-    accel_one = _scaled_acceleration(L, ())
-    scalar = jax.ShapeDtypeStruct((), dtype)
     plain = Taylor(order=solver.order, max_step=solver.max_step)
-    supported = plain.supports(
-        lambda s, x, v, q0, Qs, tau: accel_one(q0, Qs, tau, s, x, v),
-        dtype,
-        scalar,
-        scalar,
-        scalar,
-    )
-    return plain if supported else solver.fallback
+    try:
+        known = _TAYLOR_SUPPORT.setdefault(L, {})
+    except TypeError:  # not weakly referenceable: decide anew
+        known = {}
+    key = (jnp.dtype(dtype).name, plain)
+    if key not in known:
+        accel_one = _scaled_acceleration(L, ())
+        scalar = jax.ShapeDtypeStruct((), dtype)
+        known[key] = plain.supports(
+            lambda s, x, v, q0, Qs, tau: accel_one(q0, Qs, tau, s, x, v),
+            dtype,
+            scalar,
+            scalar,
+            scalar,
+        )
+    return plain if known[key] else solver.fallback
 
 
 def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
