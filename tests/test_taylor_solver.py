@@ -33,6 +33,32 @@ def test_pendulum_periods_exact(method):
     assert np.max(err) < (1e-11 if method == "half" else 1e-12), np.max(err)
 
 
+def test_events_are_located_inside_the_crossing_step(monkeypatch):
+    """Each event is located in the step that crosses it, from the step's own
+    polynomials (no trial steps): ~5 steps per quarter period of the pendulum at rtol
+    1e-14 (with trials, as before: ~9). With the polynomial root made useless (no
+    Newton iterations: its last correction is then far above round-off), every lane
+    falls back to trials from the located estimate, and gets the same periods to
+    round-off, in more steps."""
+    q0 = jnp.linspace(0.05, 3.05, 256)
+    exact = np.asarray(pendulum.period(q0))
+    kw = dict(method="quarter", rtol=1e-14, atol=1e-14, error_estimate=False)
+    fast = _sweep(PENDULUM, q0, **kw)
+    steps = np.asarray(fast.num_steps)
+    assert steps.mean() < 6.0, steps.mean()
+    import lagrax._sweep as sweep_module
+
+    monkeypatch.setattr(sweep_module, "_ROOT_LOW_ITERS", 0)
+    monkeypatch.setattr(sweep_module, "_ROOT_FULL_ITERS", 0)
+    # A new function object: the kernel is traced again with the constants above.
+    slow = _sweep(lambda q, qd, t: PENDULUM(q, qd, t), q0, **kw)
+    assert np.all(np.asarray(slow.status) == 0)
+    assert np.asarray(slow.num_steps).mean() > steps.mean() + 1
+    for res in (fast, slow):
+        err = np.abs(np.asarray(res.periods) / exact - 1)
+        assert err.max() < 1e-14, err.max()
+
+
 def test_first_step_from_rest_not_too_long():
     """From rest the odd coefficients of x(s) vanish; a step length from the last two
     orders then rested on one coefficient that crosses zero near q0 = 2.23692 (the
