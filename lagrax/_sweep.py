@@ -1028,7 +1028,10 @@ def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shif
     # point of maximum speed: nothing is integrated through the bottom of the swing.
     (st_a, t_a, q_m, qd_a, steps_a), ex_a = run(q0, zeros, MAX_SPEED)
     q1, found, band = _far_turning_point(L, consts, q0, q_m)
-    q1 = q1 + shift * band
+    # (Only where shifted: a band that rounding leaves undefined, NaN next to a
+    # singular point, must not turn the requested solve's start into NaN, reported
+    # as a non-finite release point.)
+    q1 = q1 + jnp.where(shift != 0, shift * band, 0.0)
     go = found & (st_a == SUCCESS)
     (st_b, t_b, _, qd_b, steps_b), ex_b = run(jnp.where(go, q1, jnp.nan), q_m, POSITION)
     tol = jnp.sqrt(rtols) if energy_tol is None else energy_tol

@@ -257,3 +257,20 @@ def test_every_explicit_tableau_runs_the_kernel(solver, tol, bound):
     assert err.max() <= bound
     if isinstance(solver, dfx.Dopri8):
         _check_bound(res, pendulum.period(a))
+
+
+def test_an_undefined_rounding_band_is_not_a_nonfinite_release():
+    # Next to the cusp the reparametrized cycloid's far turning point is the cusp
+    # itself, where rounding leaves the band of L(q, 0) undefined (NaN): the requested
+    # solve must not start from NaN (it was reported as a non-finite release point);
+    # the estimate, which would need the band, cannot certify the lane.
+    L_theta = cycloid.lagrangian(R=1.0, g=9.81)
+    L_u = lagrax.reparametrize(L_theta, lambda u, t: 2 * jnp.arccos(u))
+    u0 = jnp.array([0.5, 1 - 1e-14, 1 - 5e-15])
+    exact = np.asarray(cycloid.cycloid_period(R=1.0, g=9.81))
+    res = lagrax.sweep_periods(L_u, u0, error_estimate=False)
+    assert res.solver == dfx.Dopri8()  # `acos` has no Taylor recurrence here
+    assert np.all(np.asarray(res.status) == SUCCESS)
+    assert np.max(np.abs(np.asarray(res.periods) / exact - 1)) <= 1e-12
+    checked = lagrax.sweep_periods(L_u, u0)
+    assert list(np.asarray(checked.status)) == [SUCCESS] + [TOLERANCE_NOT_MET] * 2
