@@ -1312,8 +1312,12 @@ def sweep_periods(
 
     - `L`: the Lagrangian `L(q, qdot, t) -> scalar` of one coordinate.
     - `q0`: release points, a 1-D float array.
-    - `solver`, `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in
-        `period` (the same for every lane).
+    - `solver`: default `Taylor(fallback=Dopri8())` (above); any solver `period`
+        takes. For a sweep to be differentiated, `solver=diffrax.Dopri8()` compiles
+        its derivative faster (`jax.grad` of 64 amplitudes, "matched", first call
+        4.4 s against 10.5 s, measured) and runs it slower.
+    - `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in `period`
+        (the same for every lane).
     - `chunk_size`: lanes stepping together per device (static: changing it compiles
         anew).
     - `error_estimate`: compute the per-lane error estimate (see above).

@@ -1100,8 +1100,10 @@ class Taylor(eqx.Module):
     consist of primitives with a recurrence (`taylor_coefficients` lists them). For
     one that has none, `Taylor()` raises `NotImplementedError` naming the primitive
     at the first call, and `Taylor(fallback=diffrax.Dopri8())` (the default solver of
-    `period` and `sweep_periods`) steps with the fallback instead; which one ran is
-    `SweepResult.solver`.
+    `sweep_periods`) steps with the fallback instead; which one ran is
+    `SweepResult.solver`. Its forward-mode derivative compiles longer than a
+    Runge–Kutta step's (the recurrence's tangent: `jax.grad` of a 64-amplitude
+    "matched" sweep of the pendulum, first call 10.5 s against 4.4 s with `Dopri8`).
 
     **Arguments:**
 
