@@ -246,9 +246,11 @@ def _taylor_step(spec, coeffs, accel, s, x, v, h_req, free, rtol, atol, cap, eve
     xe, ve, ae = xe + ve * dt, ve + ae * dt, ae + sg(da) * dt
     inner = crossed & (jnp.abs(dt) <= 1e-8 * h) & (te > 0) & (te <= h)
     inner = inner & jnp.isfinite(xe) & jnp.isfinite(ve) & jnp.isfinite(ae)
-    # Six outputs: XLA's CPU fusion refuses more than ~7 that share the recurrence
-    # (its code-duplication limit) and then copies the recurrence into ~14 fusions
-    # (measured: 4x slower per lane-step).
+    # One loop for every output (`one_fusion`): the recurrence is computed once. It
+    # stays one loop only while no expensive op (a division, a transcendental) in it
+    # has several readers and the acceleration called here has no `one_fusion` of its
+    # own; otherwise XLA's CPU fusion splits it and copies the recurrence into each
+    # part (3-4x slower per lane-step, measured).
     out = one_fusion(
         dict(
             x1=jnp.where(inner, xe, x1),
