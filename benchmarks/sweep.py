@@ -17,8 +17,8 @@ after the other):
   rtol = atol = 1e-12 … 1e-14, with `Dopri8` and `lagrax.Taylor()` (order 20; the
   default solver `Taylor(fallback=Dopri8())` resolves to it for the pendulum), with
   the per-lane error estimate off (the kernel alone) and on (the default), and with
-  every default (the "default" row), on one core (one JAX device, `taskset` to core 0) and on the whole
-  machine (one JAX device per core).
+  every default (the "default" row), on one core (one JAX device, `taskset` to
+  core 0) and on the whole machine (one JAX device per core).
 
 For every lagrax row it prints periods/s, max relative error, steps per lane, the
 useful fraction of lane-steps, ns per lane-step, and the ceiling: the time of the
@@ -360,15 +360,16 @@ def work_gpu(args):
     L = pendulum.lagrangian()
     rows = []
     device = str(jax.devices()[0].device_kind)
-    for n in (10_000, 100_000, 1_000_000):
+    for n in args.gpu_sizes:
         a_np = _amplitudes(n)
         a = jnp.asarray(a_np)
         exact = _exact(a_np)
-        for method, solver in (
-            ("quarter", dfx.Dopri8()),
-            ("matched", dfx.Dopri8()),
-            ("quarter", lagrax.Taylor()),
-            ("matched", lagrax.Taylor()),
+        for method, solver, estimate in (
+            ("quarter", dfx.Dopri8(), False),
+            ("matched", dfx.Dopri8(), False),
+            ("quarter", lagrax.Taylor(), False),
+            ("matched", lagrax.Taylor(), False),
+            ("matched", lagrax.Taylor(), True),  # the defaults' work (+ estimate)
         ):
             for width in (4096, 65536):
                 run = lambda: lagrax.sweep_periods(
@@ -376,7 +377,7 @@ def work_gpu(args):
                     a,
                     method=method,
                     chunk_size=width,
-                    error_estimate=False,
+                    error_estimate=estimate,
                     solver=solver,
                 )
                 t0 = time.perf_counter()
@@ -385,7 +386,8 @@ def work_gpu(args):
                 res, sec = _best(run, 3)
                 rows.append(
                     _row(
-                        f"lagrax {type(solver).__name__} {method} n={n} "
+                        f"lagrax {type(solver).__name__} {method}"
+                        f"{' + estimate' if estimate else ''} n={n} "
                         f"width={width} on {device}",
                         res.periods,
                         exact,
@@ -419,6 +421,13 @@ def main():
     p = argparse.ArgumentParser()
     p.add_argument("--quick", action="store_true")
     p.add_argument("--gpu", action="store_true")
+    p.add_argument(
+        "--gpu-sizes",
+        type=int,
+        nargs="+",
+        default=[10_000, 100_000, 1_000_000],
+        help="amplitudes per --gpu sweep (a small one checks the mode on a CPU)",
+    )
     p.add_argument("--worker")
     p.add_argument("--mode", default="scalar")
     p.add_argument("--devices", type=int, default=1)
