@@ -211,7 +211,7 @@ def _taylor_step(spec, coeffs, accel, s, x, v, h_req, free, rtol, atol, cap, eve
         n = jnp.maximum(jnp.abs(xs[j]), jnp.abs(vs[j]))
         lj = jnp.where(n > 0, _log2(n), -jnp.inf) / j
         lg = lj if lg is None else jnp.maximum(lg, lj)
-    scale = np.exp(-0.7 / (K - 1)) * tol ** (1.0 / K)
+    scale = float(np.exp(-0.7 / (K - 1))) * tol ** (1.0 / K)  # (a weak Python float)
     h_jz = scale * jnp.exp2(-lg)
     h = jnp.where(free, jnp.minimum(h_jz, jnp.minimum(cap, spec.max_step)), h_req)
     h = jax.lax.stop_gradient(h)

@@ -169,3 +169,15 @@ def test_unsupported_primitive_is_named():
 def test_bad_taylor_arguments(kwargs, exc):
     with pytest.raises(exc, match=f"`{next(iter(kwargs))}`"):
         lagrax.Taylor(**kwargs)
+
+
+@pytest.mark.parametrize("solver", [TAYLOR, dfx.Dopri8()], ids=["taylor", "dopri8"])
+def test_float32_release_points_stay_float32(solver):
+    # A float32 sweep under x64: the Taylor step's constant was a NumPy float64
+    # scalar, which promoted the loop's carry to float64 (a while_loop type error).
+    a = jnp.linspace(0.1, 3.0, 16, dtype=jnp.float32)
+    res = lagrax.sweep_periods(PENDULUM, a, solver=solver, rtol=1e-5, atol=1e-5)
+    assert res.periods.dtype == jnp.float32
+    assert np.all(np.asarray(res.status) == 0)
+    exact = np.asarray(pendulum.period(np.asarray(a, np.float64)))
+    assert np.max(np.abs(np.asarray(res.periods, np.float64) / exact - 1)) < 1e-5
