@@ -815,6 +815,10 @@ def _finish(L, consts, q0, targets, kinds, rtols, out, energy_tol):
         # A correction that is not finite carries no tangent and must not touch the
         # value (its primal contribution is zero).
         corr = jnp.where(jnp.isfinite(corr), corr, 0.0)
+        # Only a located event defines its time by g = 0: any other end state (one
+        # that "matched" may use as its meeting point, see `_run_method`) is the
+        # state at a time, whose tangent is the state's own.
+        corr = jnp.where(raw == LOCATED, corr, 0.0)
         dcorr = corr - jax.lax.stop_gradient(corr)  # zero, with the event's tangent
         t_e = tau * (s_e + dcorr)
         # The state at the event moves with it: (x, v) + (v, a) δs to first order. The
@@ -1029,6 +1033,13 @@ def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shif
     # Two quarter legs, each from rest at its own turning point, meeting at the
     # point of maximum speed: nothing is integrated through the bottom of the swing.
     (st_a, t_a, q_m, qd_a, steps_a), ex_a = run(q0, zeros, MAX_SPEED)
+    # Any point of leg A serves as the meeting point: leg B ends at its position.
+    # Where the point of maximum speed cannot be located (a well whose curvature
+    # vanishes at its bottom, q̈ = -q³: q̈ has a triple zero in time there and no
+    # Newton or secant converges), the last accepted state before it is used; the
+    # two legs' speeds must still agree there (`match`, below).
+    meet = (st_a == ROOT_FIND_FAILED) & jnp.isfinite(q_m) & jnp.isfinite(t_a)
+    st_a = jnp.where(meet & (qd_a != 0), SUCCESS, st_a)
     q1, found, band = _far_turning_point(L, consts, q0, q_m)
     # (Only where shifted: a band that rounding leaves undefined, NaN next to a
     # singular point, must not turn the requested solve's start into NaN, reported

@@ -274,3 +274,32 @@ def test_an_undefined_rounding_band_is_not_a_nonfinite_release():
     assert np.max(np.abs(np.asarray(res.periods) / exact - 1)) <= 1e-12
     checked = lagrax.sweep_periods(L_u, u0)
     assert list(np.asarray(checked.status)) == [SUCCESS] + [TOLERANCE_NOT_MET] * 2
+
+
+def test_a_well_flat_at_its_bottom():
+    # V = q^4 / 4: the curvature vanishes at the bottom, where q̈ then has a triple
+    # zero in time and the point of maximum speed cannot be located. "matched" meets
+    # at the last accepted state before it instead (any point of the first leg will
+    # do); "quarter" needs that point itself and reports the failure.
+    quartic = lambda q, qd, t: 0.5 * qd[0] ** 2 - 0.25 * q[0] ** 4
+    a = jnp.array([0.1, 0.5, 1.0, 2.0, -1.5])
+    from scipy.special import gamma
+
+    exact = gamma(0.25) ** 2 / np.sqrt(np.pi) / np.abs(np.asarray(a))
+    res = lagrax.sweep_periods(quartic, a)
+    assert np.all(np.asarray(res.status) == SUCCESS)
+    true = _check_bound(res, exact)
+    assert true.max() <= 1e-12
+    quarter = lagrax.sweep_periods(quartic, a, method="quarter")
+    assert not np.any(np.asarray(quarter.ok))
+    # dT/da = -T/a through the meeting point that is a state at a time, not an event.
+    jac = jax.jacfwd(
+        lambda a: (
+            lagrax.sweep_periods(
+                quartic, a, solver=dfx.Dopri8(), error_estimate=False
+            ).periods
+        )
+    )(a[:3])
+    np.testing.assert_allclose(
+        np.diag(np.asarray(jac)), -exact[:3] / np.asarray(a[:3]), rtol=1e-10
+    )
