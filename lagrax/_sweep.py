@@ -1039,7 +1039,7 @@ def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shif
     # Newton or secant converges), the last accepted state before it is used; the
     # two legs' speeds must still agree there (`match`, below).
     meet = (st_a == ROOT_FIND_FAILED) & jnp.isfinite(q_m) & jnp.isfinite(t_a)
-    st_a = jnp.where(meet & (qd_a != 0), SUCCESS, st_a)
+    st_a = jnp.where(meet & (qd_a != 0), SUCCESS, st_a)  # (moving: not the release)
     q1, found, band = _far_turning_point(L, consts, q0, q_m)
     # (Only where shifted: a band that rounding leaves undefined, NaN next to a
     # singular point, must not turn the requested solve's start into NaN, reported
