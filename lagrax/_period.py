@@ -153,8 +153,10 @@ def period(
         rounding of $\dot q$ changes $T$ by $\sim 4\,\delta E/\delta^2$ for a release
         $\delta$ below a hump (pendulum: ~1e-10 relative at $\pi - 10^{-3}$ in float64,
         whatever the tolerances), which `"quarter"` never integrates through. A lane
-        whose mirror image of $q_0$ is not a turning point gets status
-        `not_symmetric` instead of a wrong number.
+        whose mirror image of $q_0$ is not a turning point, or whose $L$ is not
+        mirror-symmetric about $q_m$ at three sample points across the swing (at
+        the speed of $q_m$), gets status `not_symmetric` instead of a wrong number.
+        (Sampled, not proven: an asymmetry confined between the samples is missed.)
 
     This runs on the same kernel as `sweep_periods` (one lane), and gives the same
     numbers for the same solver; `solver` is a diffrax explicit Runge–Kutta solver,

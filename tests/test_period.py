@@ -113,6 +113,25 @@ def test_full_and_quarter_methods():
     assert np.all(np.isnan(np.asarray(quarter.periods)))
 
 
+def test_quarter_checks_symmetry_across_the_swing():
+    # V = x²/2 + ε x³ (x² - 1) is asymmetric, but V(-1) = V(1): released at 1, the
+    # mirror image of the release point IS the far turning point, and a test of the
+    # turning point alone let "quarter" report a period 4% off as a success.
+    eps = 0.1
+
+    def L(q, qd, t):
+        x = q[0]
+        return 0.5 * qd[0] ** 2 - (0.5 * x**2 + eps * x**3 * (x**2 - 1.0))
+
+    q0 = jnp.array([1.0, 0.7])
+    quarter = lagrax.sweep_periods(L, q0, method="quarter")
+    assert np.all(np.asarray(quarter.status) == lagrax._results.NOT_SYMMETRIC)
+    assert np.all(np.isnan(np.asarray(quarter.periods)))
+    matched = lagrax.sweep_periods(L, q0)
+    ref = [float(lagrax.quadrature_period(L, float(x)).periods) for x in q0]
+    np.testing.assert_allclose(matched.periods, ref, rtol=1e-12)
+
+
 def test_status_codes_at_release():
     q0 = jnp.array([0.0, jnp.nan, 1.0, 0.5])
     res = lagrax.sweep_periods(PENDULUM, q0, method="quarter")
