@@ -1310,11 +1310,14 @@ def _periods_jvp(L, m, devices, primals, tangents):
 
 
 @eqx.filter_jit
-def _sweep_call(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
+def _sweep_call(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol):
     """`_periods_diff` as one compiled call: one dispatch instead of a dozen (measured:
     ~3 ms of Python and dispatch per call, a third of a 4096-amplitude Taylor sweep
-    on one core)."""
-    out = _periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
+    on one core). The lanes run in the order `order` (a permutation of the inputs);
+    the outputs come back in input order."""
+    out = _periods_diff(L, m, devices, q0[order], consts, rtol, atol, t_max, energy_tol)
+    back = lambda x: jnp.zeros_like(x).at[order].set(x, unique_indices=True)
+    out = (back(out[0]), back(out[1]), back(out[2]), out[3], back(out[4]))
     # The total of the steps too: `jnp.sum` outside costs an XLA compile of its own
     # (~80 ms on a first call, measured).
     return out, jnp.sum(out[2])
@@ -1350,6 +1353,22 @@ def one_lane(L, q0, tab, method, max_steps, rtol, atol, t_max, energy_tol, estim
         L_c, cfg, device, q0[None], consts, rtol, atol, t_max, energy_tol
     )
     return T[0], status[0], est[0]
+
+
+def _lane_order(q0):
+    """The order the lanes run in: by decreasing |q0|, so that neighbouring lanes
+    hold neighbouring release points (and, where the well's bottom is near 0, the
+    largest swings, usually the longest, go first and the queue's tail is short).
+    Measured (pendulum, 4096 amplitudes in random order, one core): the kernel ran
+    16-18% slower on unsorted release points than on the same points sorted (Taylor
+    "quarter" 4.2 vs 3.6 ms, the default 14.0 vs 11.9 ms), far more than its 2-3%
+    more idle lane-steps; why XLA's loop is slower with mixed neighbours was not
+    found. Sorted on the host (NumPy: ~0.1 ms for 4096); a traced `q0` (under
+    `jit`, `grad`) keeps its own order."""
+    n = q0.shape[0]
+    if isinstance(q0, jax.core.Tracer) or not q0.is_fully_addressable:
+        return np.arange(n, dtype=np.int32)
+    return np.argsort(-np.abs(np.asarray(q0)), kind="stable").astype(np.int32)
 
 
 def sweep_periods(
@@ -1418,8 +1437,12 @@ def sweep_periods(
     - `chunk_size`: lanes stepping together per device (static: changing it compiles
         anew).
     - `error_estimate`: compute the per-lane error estimate (see above).
-    - `sort`: accepted for compatibility and ignored: the queue does not need sorted
-        release points.
+    - `sort`: run the lanes in order of decreasing |q0| (default True; the outputs
+        stay in input order). The queue needs no sorted input to keep lanes busy,
+        but the compiled loop runs 16-18% faster when neighbouring lanes hold
+        neighbouring release points (measured, 4096 random amplitudes). Sorting is
+        done on the host, so only where `q0` is concrete: under `jit` or `grad`,
+        `q0` keeps its order (sort it yourself there if it is unsorted).
     - `devices`: the devices to share the batch over (default: all of `jax.devices()`,
         which under `jax.distributed` includes every process's devices); each device
         runs its own loop on an interleaved share, and every process receives the
@@ -1465,7 +1488,10 @@ def sweep_periods(
     n = q0.shape[0]
 
     def run(q):
-        return _sweep_call(L_c, cfg, devices, q, consts, rtol, atol, t_max, energy_tol)
+        order = _lane_order(q) if sort else np.arange(q.shape[0], dtype=np.int32)
+        return _sweep_call(
+            L_c, cfg, devices, q, order, consts, rtol, atol, t_max, energy_tol
+        )
 
     if progress is None:
         (periods, status, steps, executed, estimate), useful = run(q0)

@@ -132,6 +132,27 @@ def test_quarter_checks_symmetry_across_the_swing():
     np.testing.assert_allclose(matched.periods, ref, rtol=1e-12)
 
 
+def test_sorted_lanes_return_in_input_order():
+    # The lanes run in order of decreasing |q0| (`sort=True`, the default); the
+    # outputs come back in input order, bit for bit those of the unsorted run (a
+    # lane's arithmetic does not depend on its place), the failing lane included.
+    rng = np.random.default_rng(3)
+    q0 = rng.permutation(np.concatenate([np.linspace(0.05, 3.0, 40), [0.0]]))
+    q0 = jnp.asarray(q0)
+    a = lagrax.sweep_periods(PENDULUM, q0, chunk_size=8)
+    b = lagrax.sweep_periods(PENDULUM, q0, chunk_size=8, sort=False)
+    for x, y in [(a.periods, b.periods), (a.status, b.status), (a.num_steps, b.num_steps)]:
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    np.testing.assert_array_equal(
+        np.asarray(a.error_estimate), np.asarray(b.error_estimate)
+    )
+    ok = np.asarray(q0) != 0
+    assert np.all(np.asarray(a.status)[ok] == 0)
+    assert np.asarray(a.status)[~ok][0] == lagrax._period.NOT_OSCILLATING
+    exact = lagrax.systems.pendulum.period(q0[ok], r=1.0, g=1.0)
+    np.testing.assert_allclose(np.asarray(a.periods)[ok], exact, rtol=1e-12)
+
+
 def test_status_codes_at_release():
     q0 = jnp.array([0.0, jnp.nan, 1.0, 0.5])
     res = lagrax.sweep_periods(PENDULUM, q0, method="quarter")
