@@ -1393,8 +1393,9 @@ def sweep_periods(
     Each lane computes $T = t(q_0\to q_1) + t(q_1 \to q_0)$ as in `period` (by default
     with `method="matched"`, see there). The batch runs through one compiled loop per
     device: `chunk_size` lanes step together, and a lane that finishes takes the next
-    release point from a queue inside the loop, so no lane waits for the slowest and the
-    order of `q0` does not matter (`useful_fraction` is typically 0.95–0.98). The step
+    release point from a queue inside the loop, so no lane waits for the slowest; the
+    lanes take the release points by decreasing |q0| (`sort`), whatever their order in
+    `q0` (`useful_fraction` is typically 0.98–0.99 on one device). The step
     is, by default, an order-20 Taylor step (`lagrax.Taylor`: ~3.5-4x the periods per
     second of `Dopri8` on the pendulum, at the same or better accuracy:
     `benchmarks/sweep.py`), or where L's acceleration has a primitive without a Taylor
