@@ -1488,27 +1488,37 @@ def sweep_periods(
     L_c, consts = closure_converted(L, dtype)
     n = q0.shape[0]
 
-    def run(q):
-        order = _lane_order(q) if sort else np.arange(q.shape[0], dtype=np.int32)
+    def run(q, order):
         return _sweep_call(
             L_c, cfg, devices, q, order, consts, rtol, atol, t_max, energy_tol
         )
 
+    identity = lambda m: np.arange(m, dtype=np.int32)
     if progress is None:
-        (periods, status, steps, executed, estimate), useful = run(q0)
+        order = _lane_order(q0) if sort else identity(n)
+        (periods, status, steps, executed, estimate), useful = run(q0, order)
     else:
-        # Pieces of one size (one compilation), padded with the last release point.
+        # The whole sweep in order (on the host: progress is eager), then pieces of
+        # one size (one compilation), padded with the last release point.
+        order = _lane_order(q0) if sort else identity(n)
+        q_sorted = np.asarray(q0)[order]
         size = max(chunk_size * len(devices) * 4, -(-n // 20))
         pieces = -(-n // size)
-        padded = jnp.concatenate([q0, jnp.broadcast_to(q0[-1], (pieces * size - n,))])
+        padded = np.concatenate([q_sorted, np.full(pieces * size - n, q_sorted[-1])])
         outs = []
         for k in range(pieces):
-            outs.append(run(padded[k * size : (k + 1) * size])[0])
+            piece = jnp.asarray(padded[k * size : (k + 1) * size])
+            outs.append(run(piece, identity(size))[0])
             jax.block_until_ready(outs[-1])
             progress(min((k + 1) * size, n), n)
-        periods, status, steps, estimate = (
-            jnp.concatenate([o[i] for o in outs])[:n] for i in (0, 1, 2, 4)
-        )
+
+        def back(i):
+            x = np.concatenate([np.asarray(o[i]) for o in outs])[:n]
+            out = np.empty_like(x)
+            out[order] = x
+            return jnp.asarray(out)
+
+        periods, status, steps, estimate = (back(i) for i in (0, 1, 2, 4))
         executed = sum(o[3] for o in outs)
         useful = jnp.sum(steps)
     return SweepResult(

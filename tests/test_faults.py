@@ -152,6 +152,8 @@ def test_progress_reported_as_the_sweep_goes(mixed_sweep):
     assert len(seen) > 1 and done == sorted(done) and seen[-1] == (132, 132)
     assert all(total == 132 for _, total in seen)
     np.testing.assert_array_equal(res.status, np.tile(ref.status, 12))
+    # Sorted over the whole sweep, run in pieces, returned in input order: bit for bit.
+    np.testing.assert_array_equal(res.periods, np.tile(ref.periods, 12))
 
 
 # ----------------------------------------------------------------- command line
