@@ -1494,29 +1494,27 @@ def sweep_periods(
         )
 
     identity = lambda m: np.arange(m, dtype=np.int32)
+    order = _lane_order(q0) if sort else identity(n)
     if progress is None:
-        order = _lane_order(q0) if sort else identity(n)
         (periods, status, steps, executed, estimate), useful = run(q0, order)
     else:
-        # The whole sweep in order (on the host: progress is eager), then pieces of
-        # one size (one compilation), padded with the last release point.
-        order = _lane_order(q0) if sort else identity(n)
-        q_sorted = np.asarray(q0)[order]
+        # The whole sweep in order, then pieces of one size (one compilation),
+        # padded with the last release point, and back to input order.
+        q_sorted = q0[order]
         size = max(chunk_size * len(devices) * 4, -(-n // 20))
         pieces = -(-n // size)
-        padded = np.concatenate([q_sorted, np.full(pieces * size - n, q_sorted[-1])])
+        pad = jnp.broadcast_to(q_sorted[-1], (pieces * size - n,))
+        padded = jnp.concatenate([q_sorted, pad])
         outs = []
         for k in range(pieces):
-            piece = jnp.asarray(padded[k * size : (k + 1) * size])
+            piece = padded[k * size : (k + 1) * size]
             outs.append(run(piece, identity(size))[0])
             jax.block_until_ready(outs[-1])
             progress(min((k + 1) * size, n), n)
 
         def back(i):
-            x = np.concatenate([np.asarray(o[i]) for o in outs])[:n]
-            out = np.empty_like(x)
-            out[order] = x
-            return jnp.asarray(out)
+            x = jnp.concatenate([o[i] for o in outs])[:n]
+            return jnp.zeros_like(x).at[order].set(x, unique_indices=True)
 
         periods, status, steps, estimate = (back(i) for i in (0, 1, 2, 4))
         executed = sum(o[3] for o in outs)
