@@ -1499,23 +1499,25 @@ def sweep_periods(
         (periods, status, steps, executed, estimate), useful = run(q0, order)
     else:
         # The whole sweep in order, then pieces of one size (one compilation),
-        # padded with the last release point, and back to input order.
-        q_sorted = q0[order]
+        # padded with the last release point, and back to input order. With NumPy
+        # where q0 is concrete: op-by-op jnp here compiled each operation on a first
+        # call (`lagrax sweep` 2.0-2.2 s -> 2.8-2.9 s for the pendulum, measured).
+        xp = jnp if isinstance(q0, jax.core.Tracer) else np
+        q_sorted = xp.asarray(q0)[order]
         size = max(chunk_size * len(devices) * 4, -(-n // 20))
         pieces = -(-n // size)
-        pad = jnp.broadcast_to(q_sorted[-1], (pieces * size - n,))
-        padded = jnp.concatenate([q_sorted, pad])
+        pad = xp.full((pieces * size - n,), q_sorted[-1], q_sorted.dtype)
+        padded = xp.concatenate([q_sorted, pad])
         outs = []
         for k in range(pieces):
-            piece = padded[k * size : (k + 1) * size]
+            piece = jnp.asarray(padded[k * size : (k + 1) * size])
             outs.append(run(piece, identity(size))[0])
             jax.block_until_ready(outs[-1])
             progress(min((k + 1) * size, n), n)
-
-        def back(i):
-            x = jnp.concatenate([o[i] for o in outs])[:n]
-            return jnp.zeros_like(x).at[order].set(x, unique_indices=True)
-
+        inverse = np.argsort(order)
+        back = lambda i: jnp.asarray(
+            xp.concatenate([xp.asarray(o[i]) for o in outs])[:n][inverse]
+        )
         periods, status, steps, estimate = (back(i) for i in (0, 1, 2, 4))
         executed = sum(o[3] for o in outs)
         useful = jnp.sum(steps)
