@@ -189,7 +189,14 @@ def _polynomial_root(cs, h, g0, g1):
     return t
 
 
-def _taylor_step(spec, coeffs, accel, s, x, v, h_req, free, rtol, atol, cap, event):
+_GL3 = tuple(
+    (float(x), float(w)) for x, w in zip(*np.polynomial.legendre.leggauss(3))
+)
+
+
+def _taylor_step(
+    spec, coeffs, accel, s, x, v, h_req, free, rtol, atol, cap, event, screen=False
+):
     """One Taylor step of every lane: of its own length (`free`) or of length `h_req`
     (an event's trial). Returns the state at s + h, the acceleration there and h, or
     on lanes whose step crossed their event (`event` = (kind, sigma, x_t) per lane)
@@ -246,22 +253,52 @@ def _taylor_step(spec, coeffs, accel, s, x, v, h_req, free, rtol, atol, cap, eve
     xe, ve, ae = xe + ve * dt, ve + ae * dt, ae + sg(da) * dt
     inner = crossed & (jnp.abs(dt) <= 1e-8 * h) & (te > 0) & (te <= h)
     inner = inner & jnp.isfinite(xe) & jnp.isfinite(ve) & jnp.isfinite(ae)
+    outs = dict(
+        x1=jnp.where(inner, xe, x1),
+        v1=jnp.where(inner, ve, v1),
+        a1=jnp.where(inner, ae, a1),
+        h=jnp.where(inner, te, h),
+        guess=te,
+        inner=inner,
+    )
+    if screen:
+        outs.update(_screen_terms(spec, xs, vs, as_, v, outs["h"], scale))
     # One loop for every output (`one_fusion`): the recurrence is computed once. It
     # stays one loop only while no expensive op (a division, a transcendental) in it
     # has several readers and the acceleration called here has no `one_fusion` of its
     # own; otherwise XLA's CPU fusion splits it and copies the recurrence into each
     # part (3-4x slower per lane-step, measured).
-    out = one_fusion(
-        dict(
-            x1=jnp.where(inner, xe, x1),
-            v1=jnp.where(inner, ve, v1),
-            a1=jnp.where(inner, ae, a1),
-            h=jnp.where(inner, te, h),
-            guess=te,
-            inner=inner,
-        )
+    out = one_fusion(outs)
+    keys = ("x1", "v1", "a1", "h", "guess", "inner")
+    return tuple(out[k] for k in keys) + (
+        tuple(out[k] for k in ("W", "dq", "dv")) if screen else (None,) * 3
     )
-    return tuple(out[k] for k in ("x1", "v1", "a1", "h", "guess", "inner"))
+
+
+def _screen_terms(spec, xs, vs, as_, v, hu, scale):
+    """The step's terms of the first-order error bound (`_screen`), from its
+    polynomials and the step `hu` taken."""
+    K = spec.order
+    # The step's truncation: the last two terms kept, the second-to-last scaled by
+    # the step's ratio h/ρ to the radius of convergence (a bound on the first term
+    # dropped, pessimistic by ρ/h). W = ∫ ds / v(s)² over the step by 3-point
+    # Gauss–Legendre on the velocity polynomial; from rest (v = a0 s + ...) its
+    # Hadamard finite part, ∫ (1/v² - 1/(a0 s)²) ds - 1/(a0² h). One division per
+    # node (each has one reader, see `_taylor_step`).
+    hk1 = hu ** (K - 1)
+    dq = hk1 * (jnp.abs(xs[K]) * hu + scale * jnp.abs(xs[K - 1]))
+    dv = hk1 * (jnp.abs(vs[K]) * hu + scale * jnp.abs(vs[K - 1]))
+    rest = v == 0
+    a2 = jnp.where(rest, as_[0] * as_[0], 1.0)
+    w_sum = None
+    for xi, wi in _GL3:
+        sk = 0.5 * hu * (1.0 + xi)
+        vk2 = _horner(vs, sk) ** 2
+        d2 = a2 * sk * sk
+        term = wi * (d2 - jnp.where(rest, vk2, 0.0)) / (vk2 * d2)
+        w_sum = term if w_sum is None else w_sum + term
+    W = 0.5 * hu * w_sum - jnp.where(rest, 1.0 / (a2 * hu), 0.0)
+    return dict(W=W, dq=dq, dv=dv)
 
 
 def _combine(coeffs, ks):
@@ -307,18 +344,22 @@ TURNING, MAX_SPEED, POSITION = 0, 1, 2
 
 # What each amplitude's lane hands in (packed as the columns of one array).
 _OUT = ("sigma", "raw", "s", "x", "v", "steps")
+# ... and with `_Pass.screen`, the sums of the first-order error bound (`_screen`).
+_SCREEN_OUT = ("ph", "J", "F", "G")
 
 
 class _Pass(eqx.Module):
     """Everything static about one pass of the kernel over the queue.
 
     `legs`: legs per lane (2: through the turning point and back, for "full").
+    `screen`: accumulate the sums of the first-order error bound (`_screen`).
     """
 
     tab: "_Tableau | Taylor"
     legs: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
+    screen: bool = eqx.field(static=True, default=False)
 
 
 def _release(Lp, q0):
@@ -408,8 +449,9 @@ def resolve_solver(solver, L, dtype):
     return plain if known[key] else solver.fallback
 
 
-def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
-    """All amplitudes `q0s` (shape (n,)) through `cfg.width` refilling lanes.
+def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_live):
+    """The first `n_live` amplitudes of `q0s` (shape (n,)) through `cfg.width`
+    refilling lanes (the rest are left unsolved).
 
     Returns per amplitude: raw outcome, event time (lane units), end state (x, v) and
     steps; and the number of loop iterations (for the useful-work statistic).
@@ -425,6 +467,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
     safety, fmin, fmax = ctrl.safety, ctrl.factormin, ctrl.factormax
     taylor = isinstance(tab, Taylor)
     expo = 1.0 / (tab.order if taylor else tab.error_order)
+    keys = _OUT + (_SCREEN_OUT if cfg.screen else ())
 
     accel_one = _scaled_acceleration(L, consts)
 
@@ -462,7 +505,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
 
     def load(idx):
         """Lane parameters and initial state for queue positions `idx` (>= n: idle)."""
-        live = idx < n
+        live = idx < n_live
         row = table[jnp.minimum(idx, n - 1)]
         q0 = jnp.where(live, row[:, 0], 1.0)
         valid = row[:, 1] > 0
@@ -471,6 +514,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
         rtol, atol = row[:, 7], row[:, 8]
         z = jnp.zeros_like(q0)
         h0 = 0.1 * jnp.minimum(rtol, atol) ** expo
+        # The error bound's sums (`_screen`): phase, energy errors times their
+        # leverage, ∫ds/v² (from rest: its finite part) and without the first
+        # step, and the energy errors so far.
+        sums = dict(ph=z, J=z, F=z, G=z, D=z) if cfg.screen else {}
         return dict(
             idx=jnp.where(live, idx, n).astype(jnp.int32),
             done=~live | ~valid,
@@ -501,6 +548,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
             kind=kind,
             rtol=rtol,
             atol=atol,
+            **sums,
         )
 
     def g_of(lane, x, v, a):
@@ -525,7 +573,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
                 lambda s, x, v, p: accel_one(*p, s, x, v), tab.order, dtype, True
             )
             cap = jnp.maximum(lane["limit"] - s, dtmin)
-            x1, v1, a1, h, te, inner = _taylor_step(
+            x1, v1, a1, h, te, inner, W, dq, dv = _taylor_step(
                 tab,
                 lambda s, x, v: coeffs(s, x, v, p),
                 lambda si, xi, vi: accel_plain(*p, si, xi, vi),
@@ -538,6 +586,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
                 atol,
                 cap,
                 (kind, lane["sigma"], lane["xt"]),
+                screen=cfg.screen,
             )
             # Chosen before it is taken: never rejected; a non-finite step fails.
             err = jnp.where(jnp.isfinite(h), 0.0, jnp.nan)
@@ -632,6 +681,25 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
         # After a located event, go on with the step size from before the crossing.
         h_new = jnp.where(converged, hsave, h_new)
         steps = lane["steps"] + active.astype(jnp.int32)
+        est = {}
+        if cfg.screen:
+            # The step's errors (truncation bound plus rounding of the state), as a
+            # time shift δx/|v| and an energy error per unit mass |v|δv + |a|δx;
+            # an energy error made before this step moves the leg's end by its
+            # leverage ∫ds/v² over the rest of the leg (`_screen`).
+            x_err = dq + 4 * eps * (1.0 + jnp.abs(x1))
+            v_err = dv + 4 * eps * (jnp.abs(v1) + jnp.abs(h * a1))
+            e_err = jnp.abs(v1) * v_err + jnp.abs(a1) * x_err
+            shift_ = x_err / jnp.abs(v1)
+            from_rest = v == 0
+            add = lambda k, y: jnp.where(moved, lane[k] + y, lane[k])
+            est = dict(
+                ph=add("ph", shift_),
+                J=add("J", lane["D"] * W),
+                F=add("F", W),
+                G=add("G", jnp.where(from_rest, 0.0, W)),
+                D=add("D", e_err),
+            )
 
         # --- lane outcomes
         escape = _ESCAPE * jnp.maximum(lane["Qs"], 1.0) / lane["Qs"]
@@ -690,13 +758,14 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
             ghi=ghi,
             tries=tries,
             hsave=hsave,
+            **est,
         )
         lane["hp"] = jnp.where(locating | crossed, h, lane["hp"])
         lane["gp"] = jnp.where(locating | crossed, g1, lane["gp"])
 
         # --- lanes that are done hand in their result and are given the next amplitude
         done = lane["done"] & (lane["idx"] < n)
-        rows = jnp.stack([lane[k].astype(dtype) for k in _OUT], axis=1)
+        rows = jnp.stack([lane[k].astype(dtype) for k in keys], axis=1)
         out = out.at[jnp.where(done, lane["idx"], n)].set(rows, mode="drop")
         free = lane["done"]
         rank = jnp.cumsum(free.astype(jnp.int32))
@@ -705,7 +774,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
 
     def cond(carry):
         lane, free, pending = carry[:3]
-        return jnp.any((lane["idx"] < n) | (free & (pending < n)))
+        return jnp.any((lane["idx"] < n) | (free & (pending < n_live)))
 
     # Every lane starts free with its first amplitude pending: the first iteration's
     # refill loads it, so no copy of `load` is compiled outside the loop (a default
@@ -714,13 +783,13 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts):
     lane = jax.tree.map(
         lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(load, first)
     )
-    out = jnp.zeros((n, len(_OUT)), dtype)
+    out = jnp.zeros((n, len(keys)), dtype)
     # Lanes that could not start are recorded at the end of the first iteration.
     free = jnp.ones(W, bool)
     nxt, it = jnp.asarray(W, jnp.int32), jnp.zeros((), jnp.int32)
     init = (lane, free, first, out, nxt, it)
     lane, _, _, out, _, iterations = jax.lax.while_loop(cond, body, init)
-    out = {k: out[:, i] for i, k in enumerate(_OUT)}
+    out = {k: out[:, i] for i, k in enumerate(keys)}
     out["raw"] = out["raw"].astype(jnp.int32)
     out["steps"] = out["steps"].astype(jnp.int32)
     return out, iterations * W
@@ -747,7 +816,7 @@ def _finish(L, consts, q0, targets, kinds, rtols, out, energy_tol):
     zero = jnp.zeros((), dtype)
     Lp = lambda q, qd, t: L(q, qd, t, *consts)
 
-    def one(q0, target, kind, rtol, sigma, raw, s_e, x_e, v_e):
+    def one(q0, target, kind, rtol, sigma, raw, s_e, x_e, v_e, ph, J, F, G):
         r = _release(Lp, q0)
         q0, finite_q0 = r["q0"], r["finite"]
         start_ok, moving = r["start_ok"], r["moving"]
@@ -759,9 +828,13 @@ def _finish(L, consts, q0, targets, kinds, rtols, out, energy_tol):
         tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
         allowed = tol * scale + 1024 * eps * (size0 + size1)
         drifted = ~(jnp.abs(h1 - h0) <= allowed)  # NaN energies count as drift
-        _, (_, ok_end) = _accelerations(
+        _, (M_end, ok_end) = _accelerations(
             Lp, q_end[None], qdot_end[None], t_end, fuse=False
         )
+        # The estimate's sums in time units (`_screen`); they assume a constant
+        # mass, checked at the leg's two ends.
+        const_mass = jnp.abs(M_end[0, 0] - M0) <= 8 * eps * jnp.abs(M0)
+        terms = (tau * ph, tau * J, tau * F / Qs, jnp.where(const_mass, G, jnp.inf))
         status = jnp.select(
             [raw == LOCATED, raw == LOCATE_FAILED, raw == NO_EVENT, raw == MAX_STEPS],
             [SUCCESS, ROOT_FIND_FAILED, NOT_OSCILLATING, S_MAX_STEPS],
@@ -826,7 +899,7 @@ def _finish(L, consts, q0, targets, kinds, rtols, out, energy_tol):
         # dT/dparameter was off by 15-30 % on a bead track (tests/test_gradients.py).
         q_end = q_end + Qs * v_e * dcorr
         qdot_end = qdot_end + (Qs / tau) * a_e * dcorr
-        return status.astype(jnp.int32), t_e, q_end, qdot_end
+        return (status.astype(jnp.int32), t_e, q_end, qdot_end), terms
 
     return jax.vmap(one)(
         q0,
@@ -838,24 +911,30 @@ def _finish(L, consts, q0, targets, kinds, rtols, out, energy_tol):
         out["s"],
         out["x"],
         out["v"],
+        *(out.get(k, jnp.zeros_like(q0)) for k in _SCREEN_OUT),
     )
 
 
 def _device_pass(L, cfg, lanes, t_max, energy_tol, consts):
-    q0, targets, kinds, rtols, atols = lanes
+    q0, targets, kinds, rtols, atols, live = lanes
     t_lim = jnp.asarray(_NO_LIMIT if t_max is None else t_max, q0.dtype)
-    out, executed = _run_queue(L, cfg, q0, targets, kinds, rtols, atols, t_lim, consts)
-    status, t_e, q_e, qd_e = _finish(
+    # The live lanes are a prefix of the queue (each device's share of a prefix is
+    # one too); the others are never loaded.
+    n_live = jnp.sum(live.astype(jnp.int32))
+    out, executed = _run_queue(
+        L, cfg, q0, targets, kinds, rtols, atols, t_lim, consts, n_live
+    )
+    (status, t_e, q_e, qd_e), terms = _finish(
         L, consts, q0, targets, kinds, rtols, out, energy_tol
     )
-    return (status, t_e, q_e, qd_e, out["steps"]), executed
+    return (status, t_e, q_e, qd_e, out["steps"], *terms), executed
 
 
 @eqx.filter_jit
 def _pass(L, cfg, devices, lanes, consts, t_max, energy_tol):
     """One pass of the kernel over every lane and device, compiled once per static
     configuration (`L`, `cfg`, `devices`, shapes). `lanes`: per-lane arrays `(q0,
-    targets, kinds, rtols, atols)`. Outputs replicated on every device (and process),
+    targets, kinds, rtols, atols, live)`, the live lanes a prefix. Outputs replicated on every device (and process),
     in input order: `(status, t_event, q_end, qdot_end, steps), executed`."""
     n = lanes[0].shape[0]
     D = len(devices)
@@ -993,20 +1072,43 @@ class _Method(eqx.Module):
     @property
     def pass_(self):
         legs = 2 if self.method == "full" else 1
-        return _Pass(self.tab, legs, self.width, self.max_steps)
+        return _Pass(self.tab, legs, self.width, self.max_steps, self.screened)
+
+    @property
+    def screened(self):
+        """Whether the error estimate is the first-order bound where it vouches."""
+        taylor = isinstance(self.tab, Taylor)
+        return self.estimate and self.method == "matched" and taylor
 
 
-def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shift):
+def _run_method(
+    L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shift, screened=False
+):
     """One solve of every lane by `m.method` (per-lane tolerances): periods (NaN on
     failure), statuses, steps, executed lane-steps, and the far side of each swing.
-    `shift`: for "matched", how many rounding bands to move each far turning point."""
+    `shift`: for "matched", how many rounding bands to move each far turning point.
+
+    `screened` ("matched" with a Taylor step and the error estimate): the first-order
+    error bound of each lane (`_screen`), and a second solve, at `_LOOSER` times the
+    tolerances from the far turning point moved across its band, of only the lanes
+    that bound cannot vouch for, in the same loop. Then returns also the bound, which
+    lanes were solved again, their second periods and statuses."""
+    n = q0.shape[0]
     zeros = jnp.zeros_like(q0)
+    live = jnp.ones(q0.shape, bool)
     kinds = lambda kind: jnp.full(q0.shape, kind, jnp.int32)
-    run = lambda q0, targets, kind: _pass(
+    run = lambda q0, targets, kind, rtols, atols, live: _pass(
         L,
         m.pass_,
         devices,
-        (q0, targets, kinds(kind) if isinstance(kind, int) else kind, rtols, atols),
+        (
+            q0,
+            targets,
+            kinds(kind) if isinstance(kind, int) else kind,
+            rtols,
+            atols,
+            live,
+        ),
         consts,
         t_max,
         energy_tol,
@@ -1017,7 +1119,8 @@ def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shif
             "quarter": (MAX_SPEED, 4.0),
             "full": (TURNING, 1.0),
         }[m.method]
-        (status, t_e, q_e, qd_e, steps), executed = run(q0, zeros, kind)
+        res, executed = run(q0, zeros, kind, rtols, atols, live)
+        status, t_e, q_e, qd_e, steps = res[:5]
         # The far side of the swing, for `_blame_coordinates`: where the solve
         # stopped, or past the point of maximum speed by as much again.
         q_far = 2 * q_e - q0 if kind == MAX_SPEED else q_e
@@ -1032,7 +1135,7 @@ def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shif
         return T, status, steps, executed, q_far
     # Two quarter legs, each from rest at its own turning point, meeting at the
     # point of maximum speed: nothing is integrated through the bottom of the swing.
-    # Both legs run through ONE instance of the kernel: a while loop over the two
+    # Both legs run through ONE instance of the kernel: a while loop over the
     # passes whose body is the pass (its trip count is not a constant XLA can see,
     # so it is not unrolled; a `lax.scan` of two was, and gained nothing). Two calls
     # of `_pass` put two copies of the kernel in the program: XLA compiled their
@@ -1040,8 +1143,10 @@ def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shif
     # derivative's tangent kernels twice. Measured, one core, Taylor: first call of
     # a default sweep 3.34-3.43 -> 3.17-3.22 s (HLO 11.6k -> 7.5k lines); first
     # `jax.jit(jax.grad(...))` of a 64-amplitude default sweep 13.7-13.9 -> 10.0-10.3 s.
-    def after_a(res_a):
-        (st_a, t_a, q_m, qd_a, _), _ = res_a
+    # With `screened`, the second solve's two legs are passes 2 and 3 of the same loop.
+    def after_a(res, lanes, shift):
+        st_a, t_a, q_m, qd_a = res[0][:4]
+        q0 = lanes[0]
         # Any point of leg A serves as the meeting point: leg B ends at its
         # position. Where the point of maximum speed cannot be located (a well
         # whose curvature vanishes at its bottom, q̈ = -q³: q̈ has a triple zero in
@@ -1056,55 +1161,118 @@ def _run_method(L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shif
         # reported as a non-finite release point.)
         q1 = q1 + jnp.where(shift != 0, shift * band, 0.0)
         go = found & (st_a == SUCCESS)
-        lanes_b = (jnp.where(go, q1, jnp.nan), q_m, kinds(POSITION))
-        return lanes_b, (st_a, q1, found, go)
+        lanes_b = (jnp.where(go, q1, jnp.nan), q_m, kinds(POSITION), *lanes[3:])
+        return lanes_b, (q0, st_a, q1, found, go, band)
 
+    def combine(res_a, res_b, aux, rtols):
+        (_, t_a, q_m, qd_a, steps_a), terms_a = res_a[0][:5], res_a[0][5:]
+        (st_b, t_b, _, qd_b, steps_b), terms_b = res_b[0][:5], res_b[0][5:]
+        q0, st_a, q1, found, go, band = aux
+        tol = jnp.sqrt(rtols) if energy_tol is None else energy_tol
+        match = jnp.abs(jnp.abs(qd_a) - jnp.abs(qd_b)) <= tol * jnp.abs(qd_a)
+        status = jnp.select(
+            [st_a != SUCCESS, ~found, st_b != SUCCESS, ~match],
+            [
+                st_a,
+                jnp.full_like(st_a, NOT_OSCILLATING),
+                st_b,
+                jnp.full_like(st_a, ENERGY_DRIFT),
+            ],
+            st_a,
+        )
+        q_far = jnp.where(found, q1, 2 * q_m - q0)
+        T = jnp.where(status == SUCCESS, 2 * (t_a + t_b), jnp.nan)
+        steps = steps_a + jnp.where(go, steps_b, 0)
+        bound = _screen(T, t_a, t_b, terms_a, terms_b, band, rtols)
+        return T, status, steps, res_a[1] + res_b[1], q_far, bound
+
+    lanes0 = (q0, zeros, kinds(MAX_SPEED), rtols, atols, live)
     # (The same argument types as in the loop: the traced pass is reused there.)
-    res_shape = jax.eval_shape(lambda: run(q0, zeros, kinds(MAX_SPEED)))
+    res_shape = jax.eval_shape(lambda: run(*lanes0))
     blank = lambda tree: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), tree)
-    aux_shape = jax.eval_shape(lambda r: after_a(r)[1], res_shape)
+    aux_shape = jax.eval_shape(lambda r: after_a(r, lanes0, shift)[1], res_shape)
+    rounds = 2 if screened else 1
+
+    def next_round(res_a, aux, res_b):
+        """After round 0: the lanes its bound cannot vouch for, first (`perm`), at
+        looser tolerances; the others are not loaded."""
+        T, status, _, _, _, bound = combine(res_a, res_b, aux, rtols)
+        redo = (status == SUCCESS) & ~(bound <= PROMISE * rtols)
+        i32 = lambda x: x.astype(jnp.int32)
+        count = jnp.sum(i32(redo))
+        first = jnp.cumsum(i32(redo)) - 1
+        rest = count + jnp.cumsum(i32(~redo)) - 1
+        pos = i32(jnp.where(redo, first, rest))  # lane i goes to position pos[i]
+        perm = jnp.zeros_like(pos).at[pos].set(jnp.arange(n, dtype=jnp.int32))
+        live = jnp.arange(n) < count
+        lanes = (
+            jnp.where(live, q0[perm], jnp.nan),
+            zeros,
+            kinds(MAX_SPEED),
+            _LOOSER * rtols[perm],
+            _LOOSER * atols[perm],
+            live,
+        )
+        return lanes, pos, count
 
     def body(c):
-        k, lanes, res_a, aux, _ = c
+        k, lanes, res_a, aux, saved, pos, _, passes = c
         res = run(*lanes)
-        first = k == 0
-        lanes, aux = jax.lax.cond(
-            first, lambda: after_a(res), lambda: (lanes, aux)
-        )
-        res_a = jax.tree.map(lambda new, old: jnp.where(first, new, old), res, res_a)
-        return k + 1, lanes, res_a, aux, res
+        leg_a = k % 2 == 0
+        if rounds == 1:
+            lanes, aux = jax.lax.cond(
+                leg_a, lambda: after_a(res, lanes, shift), lambda: (lanes, aux)
+            )
+        else:
+            # Round 1 starts leg B from the far turning point moved across its band.
+            shift_k = jnp.where(k >= 2, 1.0, 0.0).astype(q0.dtype)
 
-    # (2 on every lane, but not a constant XLA can see through.)
-    passes = jnp.where(jnp.all(rtols > -1.0), 2, 1).astype(jnp.int32)
+            def after_b():
+                # (After round 0 only; after round 1 the loop ends.)
+                # Round 1 only where round 0 left lanes to solve again.
+                def new_round():
+                    lanes_1, pos_1, count = next_round(res_a, aux, res)
+                    more = jnp.where(count > 0, passes, 2).astype(passes.dtype)
+                    return lanes_1, aux, (res_a, aux, res), pos_1, more
+
+                keep = lambda: (lanes, aux, saved, pos, passes)
+                return jax.lax.cond(k == 1, new_round, keep)
+
+            lanes, aux, saved, pos, passes = jax.lax.cond(
+                leg_a,
+                lambda: (*after_a(res, lanes, shift_k), saved, pos, passes),
+                after_b,
+            )
+        res_a = jax.tree.map(lambda new, old: jnp.where(leg_a, new, old), res, res_a)
+        return k + 1, lanes, res_a, aux, saved, pos, res, passes
+
+    # (2 passes a round on every lane, but not a constant XLA can see through.)
+    passes = jnp.where(jnp.all(rtols > -1.0), 2 * rounds, 1).astype(jnp.int32)
     init = (
         jnp.zeros((), jnp.int32),
-        (q0, zeros, kinds(MAX_SPEED)),
+        lanes0,
         blank(res_shape),
         blank(aux_shape),
+        blank((res_shape, aux_shape, res_shape)) if rounds == 2 else None,
+        jnp.zeros(q0.shape, jnp.int32) if rounds == 2 else None,
         blank(res_shape),
+        passes,
     )
-    _, _, res_a, aux, res_b = jax.lax.while_loop(
-        lambda c: c[0] < passes, body, init
+    _, lanes, res_a, aux, saved, pos, res_b, passes = jax.lax.while_loop(
+        lambda c: c[0] < c[-1], body, init
     )
-    ((_, t_a, q_m, qd_a, steps_a), ex_a) = res_a
-    ((st_b, t_b, _, qd_b, steps_b), ex_b) = res_b
-    st_a, q1, found, go = aux
-    tol = jnp.sqrt(rtols) if energy_tol is None else energy_tol
-    match = jnp.abs(jnp.abs(qd_a) - jnp.abs(qd_b)) <= tol * jnp.abs(qd_a)
-    status = jnp.select(
-        [st_a != SUCCESS, ~found, st_b != SUCCESS, ~match],
-        [
-            st_a,
-            jnp.full_like(st_a, NOT_OSCILLATING),
-            st_b,
-            jnp.full_like(st_a, ENERGY_DRIFT),
-        ],
-        st_a,
+    if rounds == 1:
+        return combine(res_a, res_b, aux, rtols)[:5]
+    T, status, steps, executed, q_far, bound = combine(
+        saved[0], saved[2], saved[1], rtols
     )
-    q_far = jnp.where(found, q1, 2 * q_m - q0)
-    T = jnp.where(status == SUCCESS, 2 * (t_a + t_b), jnp.nan)
-    steps = steps_a + jnp.where(go, steps_b, 0)
-    return T, status, steps, ex_a + ex_b, q_far
+    T2, status2, steps2, executed2, _, _ = combine(res_a, res_b, aux, lanes[3])
+    # (Without round 1, the round-0 results stand in its outputs: nothing to redo.)
+    redo = (status == SUCCESS) & ~(bound <= PROMISE * rtols) & (passes > 2)
+    executed2 = jnp.where(passes > 2, executed2, 0)
+    T2, status2, steps2 = (x[pos] for x in (T2, status2, steps2))
+    steps = steps + jnp.where(redo, steps2, 0)
+    return T, status, steps, executed + executed2, q_far, bound, redo, T2, status2
 
 
 # A failed lane whose mass ∂²L/∂q̇² falls below this fraction of its largest value
@@ -1153,6 +1321,38 @@ _LOOSER = 10.0
 _SAFETY = 3.0
 #: A lane's period is trusted when its estimate is below this many times rtol.
 PROMISE = 100.0
+# The first-order bound (`_screen`): its safety factor, and the largest leverage
+# ∫ds/v² (lane units) of a leg past its first step for which it is used: beyond,
+# rounding of the force, which it does not model, may be amplified (near a hump).
+_SCREEN_SAFETY = 3.0
+_SCREEN_LEVERAGE = 100.0
+
+
+def _screen(T, t_a, t_b, terms_a, terms_b, band, rtols):
+    r"""A first-order bound on the relative error of "matched"'s period from its
+    own solve (Taylor steps), without a second solve.
+
+    Each step's error (its truncation bound, the rounding of the state) moves the
+    leg's end in two ways: along the orbit, a time shift $\delta q/|\dot q|$; across
+    it, an energy error $\delta E$, which changes the time left to the end of the
+    leg by $\partial\tau/\partial E|_q = -\int \mathrm dt/(M\dot q^2)$ over the rest of
+    the leg (the second solution of the variational equation by reduction of order:
+    the flow $(\dot q, \ddot q)$ is the first, the Wronskian is $\propto 1/M$). The
+    kernel sums both per leg (`ph`, `J`). Leg B starts at a far turning point known
+    to within `band`: its energy, and the leg's time by $d\tau/dE$, the Hadamard
+    finite part of $\int_0 \mathrm dt/(M\dot q^2)$ from rest (`F`; zero for a
+    harmonic well: isochronous). Bounded by absolute values; a constant mass is
+    assumed (infinite `G` otherwise, from `_finish`), and a leg whose leverage `G`
+    exceeds `_SCREEN_LEVERAGE` is not bounded here (infinite)."""
+    eps = jnp.finfo(T.dtype).eps
+    ph_a, J_a, _, G_a = terms_a
+    ph_b, J_b, F_b, G_b = terms_b
+    err = 2 * (ph_a + J_a + ph_b + J_b + band * jnp.abs(F_b)) + 16 * eps * (t_a + t_b)
+    bound = _SCREEN_SAFETY * err / jnp.abs(T) + 64 * eps
+    usable = (G_a <= _SCREEN_LEVERAGE) & (G_b <= _SCREEN_LEVERAGE)
+    usable = usable & jnp.isfinite(bound) & jnp.isfinite(band)
+    return jnp.where(usable, bound, jnp.inf)
+
 
 
 def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
@@ -1161,6 +1361,23 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     the lanes, at looser tolerances): one compiled kernel, balanced work."""
     n = q0.shape[0]
     full = lambda x, k: jnp.full((n,), k * x, q0.dtype)
+    eps = jnp.finfo(q0.dtype).eps
+    if m.screened:
+        # The first-order bound where it vouches for a lane; a second solve where not.
+        rtols, atols = full(rtol, 1.0), full(atol, 1.0)
+        out = _run_method(
+            L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, 0.0, True
+        )
+        T, status, steps, executed, q_far, bound, redo, T2, status2 = out
+        est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
+        est = jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)
+        est = jax.lax.stop_gradient(jnp.where(redo, est, bound))
+        est = jnp.where(status == SUCCESS, est, jnp.nan)
+        unmet = (status == SUCCESS) & ~(est <= PROMISE * rtol)
+        status = jnp.where(unmet, TOLERANCE_NOT_MET, status)
+        status = _blame_coordinates(L, consts, q0, q_far, status)
+        T = jnp.where(status == SUCCESS, T, jnp.nan)
+        return T, status, steps, executed, est
     if m.estimate:
         lanes = jnp.concatenate([q0, q0])
         rtols = jnp.concatenate([full(rtol, 1.0), full(rtol, _LOOSER)])
@@ -1178,7 +1395,6 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     T, T2 = T[:n], T[n:]
     status, status2 = status[:n], status[n:]
     steps = steps[:n] + steps[n:]
-    eps = jnp.finfo(q0.dtype).eps
     est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
     est = jax.lax.stop_gradient(jnp.where(status == SUCCESS, est, jnp.nan))
     # The looser solve failing where the requested one succeeded says nothing sure.
