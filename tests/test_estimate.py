@@ -303,3 +303,43 @@ def test_a_well_flat_at_its_bottom():
     np.testing.assert_allclose(
         np.diag(np.asarray(jac)), -exact[:3] / np.asarray(a[:3]), rtol=1e-10
     )
+
+
+def test_the_bound_vouches_without_a_second_solve():
+    # With the defaults (Taylor, "matched") the estimate is the first-order bound of
+    # the solve itself: on the pendulum it vouches for every lane, so no lane is
+    # solved again (the same steps as without an estimate), and it bounds the error.
+    a = jnp.linspace(0.01, 3.1, 128)
+    res = lagrax.sweep_periods(PENDULUM, a)
+    bare = lagrax.sweep_periods(PENDULUM, a, error_estimate=False)
+    assert np.array_equal(np.asarray(res.num_steps), np.asarray(bare.num_steps))
+    assert np.array_equal(np.asarray(res.periods), np.asarray(bare.periods))
+    _check_bound(res, pendulum.period(a))
+
+
+def test_the_far_turning_points_band_costs_nothing_in_a_harmonic_well():
+    # L with a constant far above the swing's energy: the far turning point is known
+    # only to ~eps/A² of the amplitude A, but the harmonic well is isochronous
+    # (dτ/dE = 0, the bound's finite-part integral): the bound must vouch for tiny
+    # amplitudes without a second solve. Without the finite part's cancellation it
+    # would be ~eps/A² (2e-8 at A = 1e-4).
+    L = lambda q, qd, t: 0.5 * qd[0] ** 2 - 0.5 * q[0] ** 2 + 1.0
+    a = jnp.geomspace(1e-4, 1.0, 16)
+    res = lagrax.sweep_periods(L, a)
+    bare = lagrax.sweep_periods(L, a, error_estimate=False)
+    assert np.all(np.asarray(res.status) == SUCCESS)
+    assert np.array_equal(np.asarray(res.num_steps), np.asarray(bare.num_steps))
+    _check_bound(res, jnp.full_like(a, 2 * jnp.pi))
+
+
+def test_a_varying_mass_is_solved_again():
+    # The bound assumes a constant mass; the cycloid in θ has M ∝ 1 - cos θ: every
+    # lane gets the second solve (more steps than without an estimate), and its
+    # estimate bounds the error against the exact, amplitude-independent period.
+    theta = jnp.linspace(0.5, 3.0, 16)
+    L = cycloid.lagrangian()
+    res = lagrax.sweep_periods(L, theta)
+    bare = lagrax.sweep_periods(L, theta, error_estimate=False)
+    assert np.all(np.asarray(res.num_steps) > np.asarray(bare.num_steps))
+    exact = np.full(16, float(cycloid.cycloid_period()))
+    _check_bound(res, exact)
