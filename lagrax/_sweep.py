@@ -275,7 +275,9 @@ def _taylor_step(
         inner=inner,
     )
     if screen:
-        outs.update(_screen_terms(spec, xs, vs, as_, v, outs["h"], scale))
+        # (No tangents: the estimate is not differentiated.)
+        terms = (xs, vs, as_, v, outs["h"], scale)
+        outs.update(_screen_terms(spec, *jax.tree.map(sg, terms)))
     # One loop for every output (`one_fusion`): the recurrence is computed once. It
     # stays one loop only while no expensive op (a division, a transcendental) in it
     # has several readers and the acceleration called here has no `one_fusion` of its
@@ -462,6 +464,11 @@ def resolve_solver(solver, L, dtype):
     return plain if known[key] else solver.fallback
 
 
+def _col(mask, like):
+    """`mask` (per lane) shaped to select rows of `like`."""
+    return mask.reshape(mask.shape + (1,) * (like.ndim - mask.ndim))
+
+
 def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_live):
     """The first `n_live` amplitudes of `q0s` (shape (n,)) through `cfg.width`
     refilling lanes (the rest are left unsolved).
@@ -530,7 +537,9 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         # The error bound's sums (`_screen`): phase, energy errors times their
         # leverage, ∫ds/v² (from rest: its finite part) and without the first
         # step, and the energy errors so far.
-        sums = dict(ph=z, J=z, F=z, G=z, D=z) if cfg.screen else {}
+        # (One array of five columns, ph J F G D: one select per refill and per
+        # step instead of five, fewer fusions to compile.)
+        sums = dict(sums=jnp.zeros(z.shape + (5,), dtype)) if cfg.screen else {}
         return dict(
             idx=jnp.where(live, idx, n).astype(jnp.int32),
             done=~live | ~valid,
@@ -571,7 +580,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         lane, free, pending, out, nxt, it = carry
         # Lanes freed by the last iteration take their new amplitudes.
         lane = jax.tree.map(
-            lambda new, old: jnp.where(free, new, old), load(pending), lane
+            lambda new, old: jnp.where(_col(free, new), new, old), load(pending), lane
         )
         s, x, v, a, h = lane["s"], lane["x"], lane["v"], lane["a"], lane["h"]
         active = ~lane["done"]
@@ -705,14 +714,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             e_err = jnp.abs(v1) * v_err + jnp.abs(a1) * x_err
             shift_ = x_err / jnp.abs(v1)
             from_rest = v == 0
-            add = lambda k, y: jnp.where(moved, lane[k] + y, lane[k])
-            est = dict(
-                ph=add("ph", shift_),
-                J=add("J", lane["D"] * W),
-                F=add("F", W),
-                G=add("G", jnp.where(from_rest, 0.0, W)),
-                D=add("D", e_err),
-            )
+            sums = lane["sums"]
+            inc = (shift_, sums[:, 4] * W, W, jnp.where(from_rest, 0.0, W), e_err)
+            inc = jax.lax.stop_gradient(jnp.stack(inc, axis=1))
+            est = dict(sums=jnp.where(moved[:, None], sums + inc, sums))
 
         # --- lane outcomes
         escape = _ESCAPE * jnp.maximum(lane["Qs"], 1.0) / lane["Qs"]
@@ -778,7 +783,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
 
         # --- lanes that are done hand in their result and are given the next amplitude
         done = lane["done"] & (lane["idx"] < n)
-        rows = jnp.stack([lane[k].astype(dtype) for k in keys], axis=1)
+        cols = [lane[k].astype(dtype) for k in _OUT]
+        if cfg.screen:
+            cols += [lane["sums"][:, i] for i in range(len(_SCREEN_OUT))]
+        rows = jnp.stack(cols, axis=1)
         out = out.at[jnp.where(done, lane["idx"], n)].set(rows, mode="drop")
         free = lane["done"]
         rank = jnp.cumsum(free.astype(jnp.int32))
@@ -1217,8 +1225,10 @@ def _run_method(
         pos = i32(jnp.where(redo, first, rest))  # lane i goes to position pos[i]
         perm = jnp.zeros_like(pos).at[pos].set(jnp.arange(n, dtype=jnp.int32))
         live = jnp.arange(n) < count
+        # (Round 1 only estimates: no tangents.)
+        sg = jax.lax.stop_gradient
         lanes = (
-            jnp.where(live, q0[perm], jnp.nan),
+            jnp.where(live, sg(q0)[perm], jnp.nan),
             zeros,
             kinds(MAX_SPEED),
             _LOOSER * rtols[perm],
@@ -1250,9 +1260,18 @@ def _run_method(
 
     # Round 1 (passes 2 and 3) starts leg B from the far turning point moved across
     # its band, and runs only where round 0 left lanes to solve again. Each round's
-    # results are combined in the loop (one copy of that code in the program).
-    round_shape = jax.eval_shape(
-        lambda r, a: combine(r, r, a, rtols), res_shape, aux_shape
+    # results are combined in the loop (one copy of that code in the program), and
+    # kept packed: one array per round (fewer fusions to compile).
+    def packed(out):
+        T, status, steps, executed, q_far, bound = out
+        f = lambda x: x.astype(q0.dtype)
+        return jnp.stack([T, f(status), f(steps), q_far, bound]), executed
+
+    rounds_shape = jax.eval_shape(
+        lambda r, a: packed(combine(r, r, a, rtols)), res_shape, aux_shape
+    )
+    rounds_shape = jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct((2,) + x.shape, x.dtype), rounds_shape
     )
 
     def body(c):
@@ -1262,14 +1281,19 @@ def _run_method(
 
         def after_b():
             out = combine(res_a, res, aux, lanes[3])
-            r0 = jax.tree.map(lambda x, y: jnp.where(k == 1, x, y), out, rounds_[0])
-            r1 = jax.tree.map(lambda x, y: jnp.where(k == 3, x, y), out, rounds_[1])
-            T, status, _, _, _, bound = out
-            lanes_1, pos_1, count = next_round(T, status, bound)
-            first = k == 1
-            pick = lambda x, y: jax.tree.map(lambda u, v: jnp.where(first, u, v), x, y)
-            more = jnp.where(first & (count == 0), 2, passes).astype(passes.dtype)
-            return pick(lanes_1, lanes), aux, (r0, r1), pick(pos_1, pos), more
+            i = (k - 1) // 2
+            r = jax.tree.map(lambda all_, x: all_.at[i].set(x), rounds_, packed(out))
+
+            def new_round():
+                T, status, _, _, _, bound = out
+                lanes_1, pos_1, count = next_round(T, status, bound)
+                more = jnp.where(count > 0, passes, 2).astype(passes.dtype)
+                return lanes_1, pos_1, more
+
+            lanes_, pos_, more = jax.lax.cond(
+                k == 1, new_round, lambda: (lanes, pos, passes)
+            )
+            return lanes_, aux, r, pos_, more
 
         shift_k = jnp.where(k >= 2, 1.0, 0.0).astype(q0.dtype)
         lanes, aux, rounds_, pos, passes = jax.lax.cond(
@@ -1287,20 +1311,23 @@ def _run_method(
         lanes0,
         blank(res_shape),
         blank(aux_shape),
-        blank((round_shape, round_shape)),
+        blank(rounds_shape),
         jnp.zeros(q0.shape, jnp.int32),
         passes,
     )
-    _, _, _, _, (r0, r1), pos, passes = jax.lax.while_loop(
+    _, _, _, _, (rounds_, ex), pos, passes = jax.lax.while_loop(
         lambda c: c[0] < c[-1], body, init
     )
-    T, status, steps, executed, q_far, bound = r0
-    T2, status2, steps2, executed2, _, _ = r1
+    i32 = lambda x: x.astype(jnp.int32)
+    T, status, steps, q_far, bound = rounds_[0]
+    status, steps = i32(status), i32(steps)
     # (Without round 1, nothing to redo: its outputs are blank.)
     redo = (status == SUCCESS) & ~(bound <= PROMISE * rtols) & (passes > 2)
-    T2, status2, steps2 = (x[pos] for x in (T2, status2, steps2))
-    steps = steps + jnp.where(redo, steps2, 0)
-    return T, status, steps, executed + executed2, q_far, bound, redo, T2, status2
+    T2, status2, steps2 = rounds_[1][:3, pos]
+    steps = steps + jnp.where(redo, i32(steps2), 0)
+    T, status2 = T, i32(status2)
+    executed = ex[0] + jnp.where(passes > 2, ex[1], 0)
+    return T, status, steps, executed, q_far, bound, redo, T2, status2
 
 
 # A failed lane whose mass ∂²L/∂q̇² falls below this fraction of its largest value
@@ -1373,6 +1400,7 @@ def _screen(T, t_a, t_b, terms_a, terms_b, band, rtols):
     assumed (infinite `G` otherwise, from `_finish`), and a leg whose leverage `G`
     exceeds `_SCREEN_LEVERAGE` is not bounded here (infinite)."""
     eps = jnp.finfo(T.dtype).eps
+    T, t_a, t_b, band = jax.lax.stop_gradient((T, t_a, t_b, band))
     ph_a, J_a, _, G_a = terms_a
     ph_b, J_b, F_b, G_b = terms_b
     err = 2 * (ph_a + J_a + ph_b + J_b + band * jnp.abs(F_b)) + 16 * eps * (t_a + t_b)
