@@ -202,9 +202,7 @@ def _polynomial_root(cs, h, g0, g1):
     return t
 
 
-_GL3 = tuple(
-    (float(x), float(w)) for x, w in zip(*np.polynomial.legendre.leggauss(3))
-)
+_GL3 = tuple((float(x), float(w)) for x, w in zip(*np.polynomial.legendre.leggauss(3)))
 
 
 def _taylor_step(
@@ -473,8 +471,9 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     """The first `n_live` amplitudes of `q0s` (shape (n,)) through `cfg.width`
     refilling lanes (the rest are left unsolved).
 
-    Returns per amplitude: raw outcome, event time (lane units), end state (x, v) and
-    steps; and the number of loop iterations (for the useful-work statistic).
+    Returns per amplitude: raw outcome, event time (lane units), end state (x, v),
+    steps (and with `cfg.screen` the error bound's sums); the number of executed
+    lane-steps (for the useful-work statistic); and each amplitude's `_release`.
     """
     n = q0s.shape[0]
     W = min(cfg.width, n)
@@ -535,11 +534,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         rtol, atol = row[:, 7], row[:, 8]
         z = jnp.zeros_like(q0)
         h0 = 0.1 * jnp.minimum(rtol, atol) ** expo
-        # The error bound's sums (`_screen`): phase, energy errors times their
-        # leverage, ∫ds/v² (from rest: its finite part) and without the first
-        # step, and the energy errors so far.
-        # (One array of five columns, ph J F G D: one select per refill and per
-        # step instead of five, fewer fusions to compile.)
+        # The error bound's sums (`_screen`), one array of five columns: the phase
+        # (ph), energy errors times their leverage (J), ∫ds/v² (F; from rest its
+        # finite part), the same without the first step (G), and the energy errors
+        # so far (D). (One array: one select per refill and per step, not five.)
         sums = dict(sums=jnp.zeros(z.shape + (5,), dtype)) if cfg.screen else {}
         return dict(
             idx=jnp.where(live, idx, n).astype(jnp.int32),
@@ -1176,6 +1174,7 @@ def _run_method(
             status = jnp.where((status == SUCCESS) & ~symmetric, NOT_SYMMETRIC, status)
         T = jnp.where(status == SUCCESS, factor * t_e, jnp.nan)
         return T, status, steps, executed, q_far
+
     # Two quarter legs, each from rest at its own turning point, meeting at the
     # point of maximum speed: nothing is integrated through the bottom of the swing.
     # Both legs run through ONE instance of the kernel: a while loop over the
@@ -1432,9 +1431,10 @@ def _screen(T, t_a, t_b, terms_a, terms_b, band, rtols):
     return jnp.where(usable, bound, jnp.inf)
 
 
-
 def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
-    """Periods, statuses, steps, executed lane-steps and error estimates. The
+    """Periods, statuses, steps, executed lane-steps and error estimates. With
+    `m.screened` the estimate is the first-order bound (`_screen`), and a second
+    solve only of the lanes it cannot vouch for (`_run_method`); otherwise the
     estimate's second solve runs in the same queue as the first (the second half of
     the lanes, at looser tolerances): one compiled kernel, balanced work."""
     n = q0.shape[0]
