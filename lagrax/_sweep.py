@@ -1431,6 +1431,15 @@ def _screen(T, t_a, t_b, terms_a, terms_b, band, rtols):
     return jnp.where(usable, bound, jnp.inf)
 
 
+def _second_solve_estimate(T, status, T2, status2):
+    """The estimate from a second solve at looser tolerances: `_SAFETY` times the
+    relative difference plus 64 ulps; infinite where the looser solve failed and
+    the requested one did not (that says nothing sure)."""
+    eps = jnp.finfo(T.dtype).eps
+    est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
+    return jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)
+
+
 def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     """Periods, statuses, steps, executed lane-steps and error estimates. With
     `m.screened` the estimate is the first-order bound (`_screen`), and a second
@@ -1439,47 +1448,37 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     the lanes, at looser tolerances): one compiled kernel, balanced work."""
     n = q0.shape[0]
     full = lambda x, k: jnp.full((n,), k * x, q0.dtype)
-    eps = jnp.finfo(q0.dtype).eps
     if m.screened:
-        # The first-order bound where it vouches for a lane; a second solve where not.
         rtols, atols = full(rtol, 1.0), full(atol, 1.0)
         out = _run_method(
             L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, 0.0, True
         )
         T, status, steps, executed, q_far, bound, redo, T2, status2 = out
-        est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
-        est = jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)
-        est = jax.lax.stop_gradient(jnp.where(redo, est, bound))
-        est = jnp.where(status == SUCCESS, est, jnp.nan)
-        unmet = (status == SUCCESS) & ~(est <= PROMISE * rtol)
-        status = jnp.where(unmet, TOLERANCE_NOT_MET, status)
-        status = _blame_coordinates(L, consts, q0, q_far, status)
-        T = jnp.where(status == SUCCESS, T, jnp.nan)
-        return T, status, steps, executed, est
-    if m.estimate:
+        # The bound where it vouches for a lane; the second solve's estimate where not.
+        est = jnp.where(redo, _second_solve_estimate(T, status, T2, status2), bound)
+    elif m.estimate:
         lanes = jnp.concatenate([q0, q0])
         rtols = jnp.concatenate([full(rtol, 1.0), full(rtol, _LOOSER)])
         atols = jnp.concatenate([full(atol, 1.0), full(atol, _LOOSER)])
         shift = jnp.concatenate([jnp.zeros(n, q0.dtype), jnp.ones(n, q0.dtype)])
+        T, status, steps, executed, q_far = _run_method(
+            L, m, devices, lanes, consts, rtols, atols, t_max, energy_tol, shift
+        )
+        T, T2, status, status2 = T[:n], T[n:], status[:n], status[n:]
+        steps, q_far = steps[:n] + steps[n:], q_far[:n]
+        est = _second_solve_estimate(T, status, T2, status2)
     else:
-        lanes, rtols, atols, shift = q0, full(rtol, 1.0), full(atol, 1.0), 0.0
-    T, status, steps, executed, q_far = _run_method(
-        L, m, devices, lanes, consts, rtols, atols, t_max, energy_tol, shift
-    )
-    if not m.estimate:
+        rtols, atols = full(rtol, 1.0), full(atol, 1.0)
+        T, status, steps, executed, q_far = _run_method(
+            L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, 0.0
+        )
         status = _blame_coordinates(L, consts, q0, q_far, status)
         T = jnp.where(status == SUCCESS, T, jnp.nan)
         return T, status, steps, executed, jnp.full_like(T, jnp.nan)
-    T, T2 = T[:n], T[n:]
-    status, status2 = status[:n], status[n:]
-    steps = steps[:n] + steps[n:]
-    est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
     est = jax.lax.stop_gradient(jnp.where(status == SUCCESS, est, jnp.nan))
-    # The looser solve failing where the requested one succeeded says nothing sure.
-    est = jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)
     unmet = (status == SUCCESS) & ~(est <= PROMISE * rtol)
     status = jnp.where(unmet, TOLERANCE_NOT_MET, status)
-    status = _blame_coordinates(L, consts, q0, q_far[:n], status)
+    status = _blame_coordinates(L, consts, q0, q_far, status)
     T = jnp.where(status == SUCCESS, T, jnp.nan)
     return T, status, steps, executed, est
 
