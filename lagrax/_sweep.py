@@ -229,8 +229,11 @@ def _taylor_step(
         n = jnp.maximum(jnp.abs(xs[j]), jnp.abs(vs[j]))
         lj = jnp.where(n > 0, _log2(n), -jnp.inf) / j
         lg = lj if lg is None else jnp.maximum(lg, lj)
-    scale = float(np.exp(-0.7 / (K - 1))) * tol ** (1.0 / K)  # (a weak Python float)
-    h_jz = scale * jnp.exp2(-lg)
+    # tol^(1/K) in the log domain too: XLA calls libm's scalar `pow` for every lane
+    # (~8 ns each, against ~1 ns for its vectorized exp2; measured).
+    # (Each exp2 with one reader: see the end of this function.)
+    c = float(np.exp(-0.7 / (K - 1)))  # (a weak Python float)
+    h_jz = c * jnp.exp2(jnp.log2(tol) / K - lg)
     h = jnp.where(free, jnp.minimum(h_jz, jnp.minimum(cap, spec.max_step)), h_req)
     h = jax.lax.stop_gradient(h)
     x1, v1 = _horner(xs, h), _horner(vs, h)
@@ -274,6 +277,7 @@ def _taylor_step(
     )
     if screen:
         # (No tangents: the estimate is not differentiated.)
+        scale = c * jnp.exp2(jnp.log2(tol) / K)
         terms = (xs, vs, as_, v, outs["h"], scale)
         outs.update(_screen_terms(spec, *jax.tree.map(sg, terms)))
     # One loop for every output (`one_fusion`): the recurrence is computed once. It
@@ -519,6 +523,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             kinds.astype(dtype),
             rtols.astype(dtype),
             atols.astype(dtype),
+            # The first step's length: computed in the refill, its `pow` (a libm
+            # call per lane) cost ~8 ns per lane-step, twice (XLA also copied it
+            # into the step's fusion; measured).
+            0.1 * jnp.minimum(rtols, atols).astype(dtype) ** expo,
         ],
         axis=1,
     )
@@ -533,7 +541,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         kind = row[:, 6].astype(kinds.dtype)
         rtol, atol = row[:, 7], row[:, 8]
         z = jnp.zeros_like(q0)
-        h0 = 0.1 * jnp.minimum(rtol, atol) ** expo
+        h0 = row[:, 9]
         # The error bound's sums (`_screen`), one array of five columns: the phase
         # (ph), energy errors times their leverage (J), ∫ds/v² (F; from rest its
         # finite part), the same without the first step (G), and the energy errors
@@ -619,13 +627,19 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         finite = jnp.isfinite(err) & jnp.isfinite(x1) & jnp.isfinite(v1)
         finite = finite & jnp.isfinite(a1)
         accept = finite & (err <= 1.0)
-        inv = jnp.where(finite & (err > 0), 1.0 / jnp.where(err > 0, err, 1.0), 1e10)
-        factor = jnp.clip(
-            safety * inv**expo,
-            jnp.where(accept, 1.0, fmin),
-            jnp.where(accept, fmax, safety),
-        )
-        factor = jnp.where(finite, factor, 0.0 if taylor else fmin)
+        if taylor:
+            # (err is 0 or NaN: the factor is a constant, without a `pow` per lane,
+            # a libm call of ~8 ns per lane-step, measured.)
+            grow = float(np.clip(safety * 1e10**expo, 1.0, fmax))
+            factor = jnp.where(finite, grow, 0.0)
+        else:
+            inv = jnp.where(finite & (err > 0), 1.0 / jnp.where(err > 0, err, 1.0), 1e10)
+            factor = jnp.clip(
+                safety * inv**expo,
+                jnp.where(accept, 1.0, fmin),
+                jnp.where(accept, fmax, safety),
+            )
+            factor = jnp.where(finite, factor, fmin)
         h_next = jax.lax.stop_gradient(h * factor)
         g1 = g_of(lane, x1, v1, a1)
         locating = lane["locating"]
@@ -1022,50 +1036,57 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
     eps = jnp.finfo(dtype).eps
     z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
     Lr = lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts)
-    F = jax.vmap(lambda q, q0: Lr(q) - Lr(q0))
     Lr_v = jax.vmap(Lr)
-    # F is known only to the rounding of the two values of L: inside that band every
-    # point is the turning point as far as float64 can tell.
-    noise = jax.vmap(lambda q, q0: 4 * eps * (jnp.abs(Lr(q)) + jnp.abs(Lr(q0))))
     dF = jax.vmap(jax.grad(Lr))
+    # Each value of L is computed once and carried (for the pendulum each is a libm
+    # call per lane, ~8 ns: recomputed for F, its rounding and each loop's test,
+    # they were most of this function's 0.74 ms per 4096 lanes, measured).
+    E0 = Lr_v(q0)
+    # F = L(q) - L(q0) is known only to the rounding of the two values of L: inside
+    # that band every point is the turning point as far as float64 can tell.
+    noise = lambda Lq: 4 * eps * (jnp.abs(Lq) + jnp.abs(E0))
     d = q_m - q0
     out = jnp.sign(d)  # away from the release point
     a, b = q_m, q_m + d  # the mirror image of q0: the root itself if the well is
-    Fa, Fb = F(a, q0), F(b, q0)  # mirror-symmetric, up to rounding
+    La, Lb = Lr_v(a), Lr_v(b)  # mirror-symmetric, up to rounding
+    Fa, Fb = La - E0, Lb - E0
 
     def expand(c):
         # Still inside the well at b: step outward by a Newton step times 1, 2, 4, …
         # (for a convex F Newton undershoots), never less than a few ulps, and by
         # |d| times the same factor where F does not fall outward (a shoulder).
-        a, b, Fa, Fb, k = c
-        more = Fb > noise(b, q0)
+        a, b, Fa, Fb, Lb, k = c
+        more = Fb > noise(Lb)
         slope = -out * dF(b)
         newton = Fb / jnp.where(slope > 0, slope, 1.0)
         step = jnp.where(slope > 0, newton, jnp.abs(d)) * 2.0**k
         step = jnp.maximum(step, 4 * eps * jnp.maximum(jnp.abs(b), jnp.abs(d)))
         b2 = jnp.where(more, b + out * step, b)
+        L2 = Lr_v(b2)
         return (
             jnp.where(more, b, a),
             b2,
             jnp.where(more, Fb, Fa),
-            jnp.where(more, F(b2, q0), Fb),
+            jnp.where(more, L2 - E0, Fb),
+            jnp.where(more, L2, Lb),
             k + 1,
         )
 
-    a, b, Fa, Fb, _ = jax.lax.while_loop(
-        lambda c: jnp.any(c[3] > noise(c[1], q0)) & (c[4] < _MAX_EXPAND),
+    a, b, Fa, Fb, Lb, _ = jax.lax.while_loop(
+        lambda c: jnp.any(c[3] > noise(c[4])) & (c[5] < _MAX_EXPAND),
         expand,
-        (a, b, Fa, Fb, 0),
+        (a, b, Fa, Fb, Lb, 0),
     )
-    at_b = jnp.abs(Fb) <= noise(b, q0)  # e.g. the mirror image, in a symmetric well
+    at_b = jnp.abs(Fb) <= noise(Lb)  # e.g. the mirror image, in a symmetric well
     found = ((Fb <= 0) | at_b) & (Fa > 0) & jnp.isfinite(a) & jnp.isfinite(b)
     secant = a + (b - a) * Fa / jnp.where(Fa != Fb, Fa - Fb, 1.0)
     x = jnp.where(found, jnp.where(at_b, b, secant), q0)
 
     def newton(c):
         a, b, x, done, k = c
-        fx = F(x, q0)
-        done = done | (jnp.abs(fx) <= noise(x, q0))
+        Lx = Lr_v(x)
+        fx = Lx - E0
+        done = done | (jnp.abs(fx) <= noise(Lx))
         a, b = jnp.where(fx > 0, x, a), jnp.where(fx > 0, b, x)
         x_new = x - fx / dF(x)
         ok = jnp.isfinite(x_new) & ((x_new - a) * (x_new - b) < 0)
@@ -1081,22 +1102,23 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
     # The tangent of the root by the implicit function theorem (zero primal).
     # (At the root F = 0: the slope's own tangent multiplies F and is dropped.)
     slope = jax.lax.stop_gradient(dF(x))
-    corr = -F(x, q0) / slope
+    Lx = Lr_v(x)
+    f0 = Lx - E0
+    corr = -f0 / slope
     corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
     root = x + (corr - jax.lax.stop_gradient(corr))
     if not with_band:
         return root, found, jnp.zeros_like(x)
     # How far the root is undetermined: the rounding scatter of F near the root,
     # measured (the user's L may round by many ulps, or by half of one), over its
-    # slope. Nine values of F spaced 64 ulps apart, against the tangent line.
+    # slope. Nine values of F spaced 64 ulps apart (the middle one is f0), against
+    # the tangent line.
     h = 64 * eps * jnp.maximum(jnp.abs(x), eps)
-    offsets = jnp.arange(-4, 5, dtype=dtype)
-    f0 = F(x, q0)
     scatter = jnp.zeros_like(x)
-    for j in offsets:
-        fj = F(x + j * h, q0)
+    for j in (-4, -3, -2, -1, 1, 2, 3, 4):
+        fj = Lr_v(x + j * h) - E0
         scatter = jnp.maximum(scatter, jnp.abs(fj - f0 - slope * j * h))
-    half_ulp = 0.5 * eps * jnp.maximum(jnp.abs(Lr_v(x)), jnp.abs(Lr_v(q0)))
+    half_ulp = 0.5 * eps * jnp.maximum(jnp.abs(Lx), jnp.abs(E0))
     band = (scatter + half_ulp) / jnp.abs(slope)
     return root, found, band
 
