@@ -633,8 +633,8 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             grow = float(np.clip(safety * 1e10**expo, 1.0, fmax))
             factor = jnp.where(finite, grow, 0.0)
         else:
-            pos = finite & (err > 0)
-            inv = jnp.where(pos, 1.0 / jnp.where(err > 0, err, 1.0), 1e10)
+            grows = finite & (err > 0)
+            inv = jnp.where(grows, 1.0 / jnp.where(err > 0, err, 1.0), 1e10)
             factor = jnp.clip(
                 safety * inv**expo,
                 jnp.where(accept, 1.0, fmin),
