@@ -95,6 +95,7 @@ from ._results import (
     TOLERANCE_NOT_MET,
 )
 from ._taylor import Taylor, taylor_coefficients
+from ._trig import vectorized_trig
 
 
 # Raw outcomes of the loop, refined into statuses by the post-pass.
@@ -499,12 +500,24 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     # Not inlined into the kernel's jaxpr: `jvp` and `vmap` of the call are then
     # done once for all sites (jacfwd through a "matched" sweep: tracing 14.9 s ->
     # 9.6 s); XLA inlines the calls, the compiled loop runs as fast (measured).
-    accel_lanes = jax.jit(jax.vmap(accel_one))
+    # Sines and cosines by `_trig.sincos`, which XLA vectorizes, not one libm call
+    # per lane each (13 per Dopri8 step: Dopri8 quarter 1e-12, pendulum, one core,
+    # 260k -> 395-414k periods/s, measured).
+    accel_lanes = jax.jit(jax.vmap(vectorized_trig(accel_one)))
     # Inside the Taylor step, which is one fusion already: the acceleration's own
     # `one_fusion` (a reduce) there, read by every output through the event's
     # location, made XLA's code-duplication limit split the recurrence into ~14
     # fusions (4x slower per lane-step, measured).
-    accel_plain = jax.jit(jax.vmap(_scaled_acceleration(L, consts, fuse=False)))
+    # The vectorized sines there too, except with the error bound's sums
+    # (`cfg.screen`): XLA's CPU emitter cuts a fusion of more than 2000 HLO ops
+    # into functions (`kMaxHloOpsPerSubgraph` in XLA's computation_partitioner)
+    # and LLVM then leaves the step's loop scalar. The pendulum's step with the
+    # sums has ~1990 ops; each inlined sine adds ~80 (one op as a libm call): 3.4x
+    # slower per call, measured. Without the sums, +8-19% (quarter, half, matched).
+    step_trig = (lambda f: f) if cfg.screen else vectorized_trig
+    accel_plain = jax.jit(
+        jax.vmap(step_trig(_scaled_acceleration(L, consts, fuse=False)))
+    )
 
     # Each amplitude's release quantities, once for the whole queue: computing them
     # in the refill for every lane cost ~20% of a Taylor sweep (measured, 1 core).
@@ -599,7 +612,11 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         if taylor:
             p = (lane["q0"], lane["Qs"], lane["tau"])
             coeffs = taylor_coefficients(
-                lambda s, x, v, p: accel_one(*p, s, x, v), tab.order, dtype, True
+                lambda s, x, v, p: accel_one(*p, s, x, v),
+                tab.order,
+                dtype,
+                True,
+                vectorized_trig=not cfg.screen,
             )
             cap = jnp.maximum(lane["limit"] - s, dtmin)
             x1, v1, a1, h, te, inner, W, dq, dv = _taylor_step(

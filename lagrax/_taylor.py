@@ -47,6 +47,7 @@ import numpy as np
 from jax import lax
 from jax.extend import core as jex_core
 
+from . import _trig
 from ._fusion import fusion_off
 
 
@@ -419,7 +420,7 @@ def _times(x, c):
 class _Order0:
     """Every variable at order 0: the jaxpr evaluated on the lanes' values."""
 
-    def __init__(self, prog, s, x, v, leaves):
+    def __init__(self, prog, s, x, v, leaves, trig=False):
         self.prog = prog
         self.W = x.shape[0]
         self.val = {}  # order-0 value of every id
@@ -436,7 +437,10 @@ class _Order0:
             vals = [self.val[i] for i in node.ins]
             batched = [self.bat[i] for i in node.ins]
             if node.kind == "sincos":
-                outs = [jnp.sin(vals[0]), jnp.cos(vals[0])]
+                if trig and vals[0].dtype == jnp.float64:
+                    outs = list(_trig.sincos(vals[0]))
+                else:
+                    outs = [jnp.sin(vals[0]), jnp.cos(vals[0])]
             elif node.kind == "sinhcosh":
                 outs = [jnp.sinh(vals[0]), jnp.cosh(vals[0])]
             else:
@@ -595,10 +599,10 @@ class _Unrolled(_Store):
         return self.pairs(a, b, lambda u, w: u * w)
 
 
-def _unrolled_coefficients(prog, K, s, x, v, leaves):
+def _unrolled_coefficients(prog, K, s, x, v, leaves, trig=False):
     """As `_coefficients`, orders unrolled: lists `xs`, `vs` (K + 1 arrays each) and
     `as_` (K arrays), each coefficient a `(W,)` array."""
-    zero = _Order0(prog, s, x, v, leaves)
+    zero = _Order0(prog, s, x, v, leaves, trig)
     W = x.shape[0]
     dtype = x.dtype
     a0 = zero.lanes(prog.out) if prog.out in zero.val else jnp.zeros_like(x)
@@ -906,10 +910,10 @@ def _order_k(st, prog):
                 st.put(o, c)
 
 
-def _coefficients(prog, K, s, x, v, leaves):
+def _coefficients(prog, K, s, x, v, leaves, trig=False):
     """`(xs, vs, as_)` for all lanes: order 0 by plain evaluation, orders 1..K-1 in
     a `fori_loop` whose body runs only the series nodes."""
-    zero = _Order0(prog, s, x, v, leaves)
+    zero = _Order0(prog, s, x, v, leaves, trig)
     W = x.shape[0]
     dtype = x.dtype
     a0 = zero.lanes(prog.out) if prog.out in zero.val else jnp.zeros_like(x)
@@ -979,7 +983,11 @@ _UNROLL_BUDGET = 2000
 
 
 def taylor_coefficients(
-    accel: Callable, order: int, dtype, unrolled: bool = False
+    accel: Callable,
+    order: int,
+    dtype,
+    unrolled: bool = False,
+    vectorized_trig: bool = False,
 ) -> Callable:
     r"""Normalized Taylor coefficients of the solution of $x' = v$, $v' = a(s, x, v)$.
 
@@ -1006,6 +1014,9 @@ def taylor_coefficients(
         same program: see `_Unrolled`) instead of stacked arrays from a loop; a
         program of more than `_UNROLL_BUDGET` equations is computed by the loop
         anyway (the same values, stacked).
+    - `vectorized_trig`: order 0's float64 sines and cosines by `lagrax._trig.sincos`
+        (vectorized by XLA, within 1 ulp, NaN beyond $|x| = 2^{19}\pi/2$) instead of
+        the C library's (one scalar call per element on a CPU).
 
     **Returns:**
 
@@ -1063,7 +1074,9 @@ def taylor_coefficients(
         if unrolled:
             # Traced once: counted against the budget, then evaluated as it is.
             built, shapes = jax.make_jaxpr(
-                lambda *a: _unrolled_coefficients(prog, K, *a[:3], list(a[3:])),
+                lambda *a: _unrolled_coefficients(
+                    prog, K, *a[:3], list(a[3:]), vectorized_trig
+                ),
                 return_shape=True,
             )(s, x, v, *leaves)
             if len(built.jaxpr.eqns) <= _UNROLL_BUDGET:
@@ -1071,7 +1084,7 @@ def taylor_coefficients(
                     built.jaxpr, built.consts, s, x, v, *leaves
                 )
                 return jax.tree.unflatten(jax.tree.structure(shapes), flat_out)
-        return _coefficients(prog, K, s, x, v, leaves)
+        return _coefficients(prog, K, s, x, v, leaves, vectorized_trig)
 
     return coeffs
 
