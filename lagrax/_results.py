@@ -70,7 +70,9 @@ class RESULTS(eqx.Enumeration):
     )
     solver_failed = (
         "the ODE solver failed (step size collapsed or non-finite state) away from "
-        "any detectable singularity of the mass matrix"
+        "any detectable singularity of the mass matrix (in a sweep: or a sine or "
+        "cosine in the equations took an argument beyond 8.2e5, which the kernel's "
+        "vectorized sine does not cover)"
     )
     nonfinite_input = "the release point q0 is not finite"
     unresolved = (

@@ -145,3 +145,19 @@ def test_vectorized_trig_replaces_float64_sines_inside_nested_calls():
     qs = jnp.linspace(-3.0, 3.0, 11)
     grad = jax.vmap(jax.grad(lambda q: g(q, p)))(qs)
     np.testing.assert_allclose(grad, np.cos(np.asarray(qs)), rtol=4e-16, atol=1e-16)
+
+
+def test_a_sweep_beyond_the_range_fails_its_lanes_never_a_wrong_period():
+    import diffrax as dfx
+
+    import lagrax
+
+    # cos(q + 2e6 pi) is the pendulum's cos q, exactly in exact arithmetic; its
+    # argument is beyond the vectorized sine's range.
+    L = lambda q, qd, t: 0.5 * qd[0] ** 2 + jnp.cos(q[0] + 2e6 * jnp.pi)
+    res = lagrax.sweep_periods(
+        L, jnp.array([0.5, 1.0]), solver=dfx.Dopri8(), method="quarter"
+    )
+    assert not np.any(res.ok)
+    assert np.all(np.isnan(res.periods))
+    assert all("8.2e5" in m for m in res.messages())
