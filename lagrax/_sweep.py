@@ -514,10 +514,9 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     # and LLVM then leaves the step's loop scalar. The pendulum's step with the
     # sums has ~1990 ops; each inlined sine adds ~80 (one op as a libm call): 3.4x
     # slower per call, measured. Without the sums, +8-19% (quarter, half, matched).
-    step_trig = (lambda f: f) if cfg.screen else vectorized_trig
-    accel_plain = jax.jit(
-        jax.vmap(step_trig(_scaled_acceleration(L, consts, fuse=False)))
-    )
+    fast_step_trig = not cfg.screen
+    plain = _scaled_acceleration(L, consts, fuse=False)
+    accel_plain = jax.jit(jax.vmap(vectorized_trig(plain) if fast_step_trig else plain))
 
     # Each amplitude's release quantities, once for the whole queue: computing them
     # in the refill for every lane cost ~20% of a Taylor sweep (measured, 1 core).
@@ -616,7 +615,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
                 tab.order,
                 dtype,
                 True,
-                vectorized_trig=not cfg.screen,
+                vectorized_trig=fast_step_trig,
             )
             cap = jnp.maximum(lane["limit"] - s, dtmin)
             x1, v1, a1, h, te, inner, W, dq, dv = _taylor_step(

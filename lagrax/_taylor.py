@@ -125,14 +125,11 @@ _ELEMENTWISE = frozenset(
     {"add", "add_any", "sub", "mul", "div", "max", "min", "pow", "rem", "clamp"}
 )
 
-# Call-like primitives whose (primal) body is inlined.
+# Call-like primitives whose (primal) body is inlined: `_trig.CALLS`, and here the
+# custom derivatives too (the recurrences need the primal only; `_trig` must keep
+# them, as the kernel's derivative goes through its calls).
 _CALLS = {
-    "pjit": "jaxpr",
-    "jit": "jaxpr",
-    "closed_call": "call_jaxpr",
-    "core_call": "call_jaxpr",
-    "remat": "jaxpr",
-    "checkpoint": "jaxpr",
+    **_trig.CALLS,
     "custom_jvp_call": "call_jaxpr",
     "custom_vjp_call": "call_jaxpr",
     "custom_vjp_call_jaxpr": "fun_jaxpr",

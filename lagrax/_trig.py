@@ -27,6 +27,7 @@ a Payne-Hanek reduction there; vectorized, every element would pay for it.)
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.extend import core as jex_core
 
 
@@ -36,7 +37,7 @@ _INVPIO2 = 6.36619772367581382433e-01
 _PIO2_1 = 1.57079632673412561417e00
 _PIO2_2 = 6.07710050630396597660e-11
 _PIO2_3, _PIO2_3T = 2.02226624871116645580e-21, 8.47842766036889956997e-32
-_RANGE = 8.23549664582705485e05  # 2^19 pi/2, fdlibm's bound for this reduction
+_RANGE = 2.0**19 * np.pi / 2  # fdlibm's bound for this reduction
 # k_sin.c, k_cos.c: minimax polynomials on [-pi/4, pi/4].
 _S = (
     -1.66666666666666324348e-01,
@@ -99,16 +100,16 @@ def _kernel_cos(x, y):
 
 
 def _sincos(x):
+    x = jnp.where(jnp.abs(x) <= _RANGE, x, jnp.nan)  # (NaN propagates to both)
     n, y0, y1 = _reduce(x)
     s, c = _kernel_sin(y0, y1), _kernel_cos(y0, y1)
     odd = (n == 1.0) | (n == 3.0)
     sin = jnp.where(odd, c, s) * jnp.where(n >= 2.0, -1.0, 1.0)
     cos = jnp.where(odd, s, c) * jnp.where((n == 1.0) | (n == 2.0), -1.0, 1.0)
-    inside = jnp.abs(x) <= _RANGE
     # sin(-0.0) is -0.0; below 2^-27, sin x rounds to x and cos x to 1.
     tiny = jnp.abs(x) < 2.0**-27
-    sin = jnp.where(inside, jnp.where(tiny, x, sin), jnp.nan)
-    cos = jnp.where(inside, jnp.where(tiny, 1.0, cos), jnp.nan)
+    sin = jnp.where(tiny, x, sin)
+    cos = jnp.where(tiny, 1.0, cos)
     return sin, cos
 
 
@@ -125,18 +126,18 @@ def _sincos_jvp(primals, tangents):
     return (s, c), (c * dx, -s * dx)
 
 
-def sin(x):
-    return sincos(x)[0]
-
-
-def cos(x):
-    return sincos(x)[1]
-
-
-# Calls whose inner jaxpr is inlined (the same as the Taylor builder's): a `jax.jit`
-# inside L, `jax.checkpoint`. Other higher-order primitives (custom derivatives, loops)
-# are bound as they are, with the C library's sine inside.
-_CALLS = {"pjit": "jaxpr", "jit": "jaxpr", "closed_call": "call_jaxpr"}
+# Call-like primitives whose inner jaxpr lagrax's jaxpr evaluators inline (here and
+# the Taylor builder of `_taylor.py`): a `jax.jit` inside L, `jax.checkpoint`. Other
+# higher-order primitives (custom derivatives, loops) are bound as they are, with
+# the C library's sine inside.
+CALLS = {
+    "pjit": "jaxpr",
+    "jit": "jaxpr",
+    "closed_call": "call_jaxpr",
+    "core_call": "call_jaxpr",
+    "remat": "jaxpr",
+    "checkpoint": "jaxpr",
+}
 
 
 def _eval(jaxpr, consts, args):
@@ -158,11 +159,14 @@ def _eval(jaxpr, consts, args):
             and eqn.params.get("accuracy") is None
         ):
             outs = [sincos(ins[0])[name == "cos"]]
-        elif name in _CALLS and isinstance(
-            eqn.params.get(_CALLS[name]), jex_core.ClosedJaxpr
-        ):
-            sub = eqn.params[_CALLS[name]]
-            outs = _eval(sub.jaxpr, sub.consts, ins)
+        elif name in CALLS and CALLS[name] in eqn.params:
+            sub = eqn.params[CALLS[name]]
+            if isinstance(sub, jex_core.ClosedJaxpr):
+                outs = _eval(
+                    sub.jaxpr, sub.consts, ins[len(ins) - len(sub.jaxpr.invars) :]
+                )
+            else:
+                outs = _eval(sub, (), ins[len(ins) - len(sub.invars) :])
         else:
             with eqn.ctx.manager:
                 outs = eqn.primitive.bind(
@@ -189,4 +193,4 @@ def vectorized_trig(f):
     return g
 
 
-__all__ = ["sincos", "sin", "cos", "vectorized_trig"]
+__all__ = ["sincos", "vectorized_trig"]
