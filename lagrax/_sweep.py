@@ -1046,13 +1046,18 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
     $q_0$: the root of $F(q) = L(q, 0) - L(q_0, 0)$ (for $L$ even in $\dot q$ and
     without explicit time, the energy at rest is $-L(q, 0)$), $F > 0$ between the
     turning points. Bracketed from the mirror image of $q_0$ outward by growing
-    Newton steps, then safeguarded Newton. Returns `(q1, found, band)`, `band` the
-    rounding band of $q_1$ (zeros without `with_band`: only the error estimate
-    reads it, and its nine evaluations of F cost ~0.3 ms per 4096 lanes)."""
+    Newton steps, then safeguarded Newton. Returns `(q1, found, band, in_range)`,
+    `band` the rounding band of $q_1$ (zeros without `with_band`: only the error
+    estimate reads it), `in_range` False where L at $q_0$ was not finite with the
+    vectorized sines (an argument beyond their range, see `_trig`)."""
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
     z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
-    Lr = lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts)
+    # Sines and cosines XLA vectorizes (`_trig.sincos`): ~20 values of L and its
+    # slope per lane, each a libm call per lane otherwise (0.65 -> 0.2 ms per 4096
+    # pendulum lanes, measured). Beyond their range (|argument| > 8.2e5) they are
+    # NaN: `in_range` says where L at the release point was finite.
+    Lr = vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
     Lr_v = jax.vmap(Lr)
     dF = jax.vmap(jax.grad(Lr))
     # Each value of L is computed once and carried (for the pendulum each is a libm
@@ -1124,8 +1129,9 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
     corr = -f0 / slope
     corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
     root = x + (corr - jax.lax.stop_gradient(corr))
+    in_range = jnp.isfinite(E0)
     if not with_band:
-        return root, found, jnp.zeros_like(x)
+        return root, found, jnp.zeros_like(x), in_range
     # How far the root is undetermined: the rounding scatter of F near the root,
     # measured (the user's L may round by many ulps, or by half of one), over its
     # slope. Nine values of F spaced 64 ulps apart (the middle one is f0), against
@@ -1137,7 +1143,7 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
         scatter = jnp.maximum(scatter, jnp.abs(fj - f0 - slope * j * h))
     half_ulp = 0.5 * eps * jnp.maximum(jnp.abs(Lx), jnp.abs(E0))
     band = (scatter + half_ulp) / jnp.abs(slope)
-    return root, found, band
+    return root, found, band, in_range
 
 
 class _Method(eqx.Module):
@@ -1236,7 +1242,9 @@ def _run_method(
         # below).
         meet = (st_a == ROOT_FIND_FAILED) & jnp.isfinite(q_m) & jnp.isfinite(t_a)
         st_a = jnp.where(meet & (qd_a != 0), SUCCESS, st_a)  # (moving: not the release)
-        q1, found, band = _far_turning_point(L, consts, q0, q_m, m.estimate)
+        q1, found, band, in_range = _far_turning_point(L, consts, q0, q_m, m.estimate)
+        # (L beyond the vectorized sines' range: the solver's failure, not the well's.)
+        st_a = jnp.where((st_a == SUCCESS) & ~in_range, SOLVER_FAILED, st_a)
         # (Only where shifted: a band that rounding leaves undefined, NaN next to a
         # singular point, must not turn the requested solve's start into NaN,
         # reported as a non-finite release point.)
@@ -1529,7 +1537,11 @@ def _is_turning_point(L, consts, q0, q, tol):
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
     z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
-    Lr = lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts)
+    # Sines and cosines XLA vectorizes (`_trig.sincos`): ~20 values of L and its
+    # slope per lane, each a libm call per lane otherwise (0.65 -> 0.2 ms per 4096
+    # pendulum lanes, measured). Beyond their range (|argument| > 8.2e5) they are
+    # NaN: `in_range` says where L at the release point was finite.
+    Lr = vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
 
     def one(q0, q, tol):
         Lq, dLq = jax.value_and_grad(Lr)(q)
