@@ -509,11 +509,15 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     # location, made XLA's code-duplication limit split the recurrence into ~14
     # fusions (4x slower per lane-step, measured).
     # The vectorized sines there too, except with the error bound's sums
-    # (`cfg.screen`): XLA's CPU emitter cuts a fusion of more than 2000 HLO ops
-    # into functions (`kMaxHloOpsPerSubgraph` in XLA's computation_partitioner)
-    # and LLVM then leaves the step's loop scalar. The pendulum's step with the
-    # sums has ~1990 ops; each inlined sine adds ~80 (one op as a libm call): 3.4x
-    # slower per call, measured. Without the sums, +8-19% (quarter, half, matched).
+    # (`cfg.screen`): with them the step's loop (17 inputs, 9 outputs) comes out
+    # scalar, 3.4x slower per call (measured): LLVM's loop vectorizer gives up
+    # ("too many memory checks needed": it counts ~170-200 runtime alias checks,
+    # its limit `-vectorize-memory-check-threshold` is 128; raised to 200 through
+    # XLA_FLAGS the same program vectorizes), i.e. alias analysis no longer
+    # separates the loop's buffers. It happens once that fusion grows: the order-0
+    # sine, or Taylor order >= 22 with the sums; the step without the sums
+    # vectorizes at 2099 HLO ops (not XLA's 2000-op subgraph limit, as believed in
+    # round 2 session 10). Without the sums, +8-19% (quarter, half, matched).
     fast_step_trig = not cfg.screen
     plain = _scaled_acceleration(L, consts, fuse=False)
     accel_plain = jax.jit(jax.vmap(vectorized_trig(plain) if fast_step_trig else plain))

@@ -161,3 +161,20 @@ def test_a_sweep_beyond_the_range_fails_its_lanes_never_a_wrong_period():
     assert not np.any(res.ok)
     assert np.all(np.isnan(res.periods))
     assert all("8.2e5" in m for m in res.messages())
+
+
+def test_a_default_sweep_beyond_the_range_fails_its_lanes():
+    import lagrax
+
+    # The default: Taylor steps with the error bound's sums (the C library's sines
+    # in the step), then the far turning point, whose values of L use the
+    # vectorized sine: NaN there, and the lane fails as the solver's, never as a
+    # period or as "not oscillating".
+    L = lambda q, qd, t: 0.5 * qd[0] ** 2 + jnp.cos(q[0] + 2e6 * jnp.pi)
+    res = lagrax.sweep_periods(L, jnp.array([0.5, 1.0]))
+    assert not np.any(res.ok)
+    assert np.all(np.isnan(res.periods))
+    assert all("8.2e5" in m for m in res.messages())
+    # The same pendulum within the range: both lanes succeed.
+    near = lambda q, qd, t: 0.5 * qd[0] ** 2 + jnp.cos(q[0] + 2e4 * jnp.pi)
+    assert np.all(lagrax.sweep_periods(near, jnp.array([0.5, 1.0])).ok)
