@@ -1058,7 +1058,7 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
     eps = jnp.finfo(dtype).eps
     z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
     # Sines and cosines XLA vectorizes (`_trig.sincos`): ~20 values of L and its
-    # slope per lane, each a libm call per lane otherwise (0.65 -> 0.2 ms per 4096
+    # slope per lane, each a libm call per lane otherwise (0.65 -> 0.13 ms per 4096
     # pendulum lanes, measured). Beyond their range (|argument| > 8.2e5) they are
     # NaN: `in_range` says where L at the release point was finite.
     Lr = vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
@@ -1541,10 +1541,10 @@ def _is_turning_point(L, consts, q0, q, tol):
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
     z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
-    # Sines and cosines XLA vectorizes (`_trig.sincos`): ~20 values of L and its
-    # slope per lane, each a libm call per lane otherwise (0.65 -> 0.2 ms per 4096
-    # pendulum lanes, measured). Beyond their range (|argument| > 8.2e5) they are
-    # NaN: `in_range` says where L at the release point was finite.
+    # Sines and cosines XLA vectorizes (`_trig.sincos`), as in `_far_turning_point`.
+    # Beyond their range L is NaN here and the test fails; such a lane has already
+    # failed in the loop ("solver failed": its steps use the same sines), and only a
+    # success is ever turned into "not symmetric".
     Lr = vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
 
     def one(q0, q, tol):
