@@ -1044,6 +1044,14 @@ _MAX_NEWTON = 60
 _MAX_EXPAND = 40
 
 
+def _at_rest(L, consts, dtype):
+    """q -> L(q, 0, 0) for a scalar q, with sines and cosines XLA vectorizes
+    (`_trig.sincos`; each a libm call per lane otherwise): for the turning-point
+    searches and tests, which evaluate it many times per lane."""
+    z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
+    return vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
+
+
 @eqx.filter_jit
 def _far_turning_point(L, consts, q0, q_m, with_band=True):
     r"""The turning point beyond $q_m$ on the energy level of a release at rest at
@@ -1056,12 +1064,10 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
     vectorized sines (an argument beyond their range, see `_trig`)."""
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
-    z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
-    # Sines and cosines XLA vectorizes (`_trig.sincos`): ~20 values of L and its
-    # slope per lane, each a libm call per lane otherwise (0.65 -> 0.13 ms per 4096
-    # pendulum lanes, measured). Beyond their range (|argument| > 8.2e5) they are
-    # NaN: `in_range` says where L at the release point was finite.
-    Lr = vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
+    # ~20 values of L and its slope per lane (0.65 -> 0.13 ms per 4096 pendulum
+    # lanes with the vectorized sines, measured). Beyond their range (|argument| >
+    # 8.2e5) they are NaN: `in_range` says where L at the release point was finite.
+    Lr = _at_rest(L, consts, dtype)
     Lr_v = jax.vmap(Lr)
     dF = jax.vmap(jax.grad(Lr))
     # Each value of L is computed once and carried (for the pendulum each is a libm
@@ -1540,12 +1546,10 @@ def _is_turning_point(L, consts, q0, q, tol):
     at rest at q0: |L(q, 0) - L(q0, 0)| <= rounding + tol |∂L/∂q(q, 0)|."""
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
-    z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
-    # Sines and cosines XLA vectorizes (`_trig.sincos`), as in `_far_turning_point`.
-    # Beyond their range L is NaN here and the test fails; such a lane has already
-    # failed in the loop ("solver failed": its steps use the same sines), and only a
-    # success is ever turned into "not symmetric".
-    Lr = vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
+    # Beyond the vectorized sines' range L is NaN here and the test fails; such a
+    # lane has already failed in the loop ("solver failed": its steps use the same
+    # sines), and only a success is ever turned into "not symmetric".
+    Lr = _at_rest(L, consts, dtype)
 
     def one(q0, q, tol):
         Lq, dLq = jax.value_and_grad(Lr)(q)
