@@ -364,6 +364,8 @@ TURNING, MAX_SPEED, POSITION = 0, 1, 2
 _OUT = ("sigma", "raw", "s", "x", "v", "steps")
 # ... and with `_Pass.screen`, the sums of the first-order error bound (`_screen`).
 _SCREEN_OUT = ("ph", "J", "F", "G")
+# A lane's constants, the rows of its parameter block `p` (`_run_queue`).
+_PARAMS = ("q0", "Qs", "tau", "xt", "limit", "kind", "rtol", "atol")
 
 
 class _Pass(eqx.Module):
@@ -508,75 +510,83 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     # `one_fusion` (a reduce) there, read by every output through the event's
     # location, made XLA's code-duplication limit split the recurrence into ~14
     # fusions (4x slower per lane-step, measured).
-    # The vectorized sines there too, except with the error bound's sums
-    # (`cfg.screen`): with them the step's loop (17 inputs, 9 outputs) comes out
-    # scalar, 3.4x slower per call (measured): LLVM's loop vectorizer gives up
-    # ("too many memory checks needed": it counts ~170-200 runtime alias checks,
-    # its limit `-vectorize-memory-check-threshold` is 128; raised to 200 through
-    # XLA_FLAGS the same program vectorizes), i.e. alias analysis no longer
-    # separates the loop's buffers. It happens once that fusion grows: the order-0
-    # sine, or Taylor order >= 22 with the sums; the step without the sums
-    # vectorizes at 2099 HLO ops (not XLA's 2000-op subgraph limit, as believed in
-    # round 2 session 10). Without the sums, +8-19% (quarter, half, matched).
-    fast_step_trig = not cfg.screen
+    # The vectorized sines there too. The step's loop vectorizes only while LLVM's
+    # loop vectorizer can prove its buffers apart: in a large fusion (the Taylor
+    # step with the error bound's sums and the sines, or order >= 22) alias
+    # analysis no longer separates them and it falls back to runtime alias checks,
+    # one per (output, input) pair and per pair of outputs, with a limit of 128
+    # (`-vectorize-memory-check-threshold`); above it the loop stays scalar, 3.4x
+    # slower ("too many memory checks needed" in its remarks; measured). With 17
+    # inputs and 9 outputs (189 checks) the estimate's step had to keep libm's
+    # sines (round 2, session 11). Now it reads 9 buffers (117 checks: a margin of
+    # one input): each lane's constants are one block `p`, and the refill is at
+    # the end of the iteration (see `body`). With the sines the estimate's step
+    # costs 14% less (2.57 vs 3.15 ms per call, pendulum, 4096 lanes, one core),
+    # and orders 22 and 24 vectorize with the sums too. Watch the step fusion's
+    # operand count (`--xla_dump_to`, `*after_optimizations.txt`) after changes to
+    # the loop body: one more input of the step costs 9 checks.
     plain = _scaled_acceleration(L, consts, fuse=False)
-    accel_plain = jax.jit(jax.vmap(vectorized_trig(plain) if fast_step_trig else plain))
+    accel_plain = jax.jit(jax.vmap(vectorized_trig(plain)))
 
     # Each amplitude's release quantities, once for the whole queue: computing them
     # in the refill for every lane cost ~20% of a Taylor sweep (measured, 1 core).
     rel = _lane_scales(L, q0s, consts)
     scales = rel["valid"], rel["Qs"], rel["tau"], rel["sigma"]
 
-    # One row per amplitude, so that a refill is one gather (each gather, scatter
-    # or small fusion is a separate call of ~0.5-1 µs on a CPU: with ten of them
-    # and a `lax.cond`, the refill cost as much as the Taylor step, measured).
-    table = jnp.stack(
+    # Each amplitude's constants, one column per amplitude and a last column for
+    # idle lanes, so that a refill is one gather (each gather, scatter or small
+    # fusion is a separate call of ~0.5-1 µs on a CPU: with ten of them and a
+    # `lax.cond`, the refill cost as much as the Taylor step, measured). A lane
+    # carries its column as ONE array `p` (a row per constant), not eight: one
+    # input of the Taylor step's fusion instead of eight, under the limit of LLVM's
+    # runtime alias checks (see `accel_plain`).
+    valid = scales[0]
+    Qs, tau, sigma0 = scales[1:]
+    live_tab = jnp.stack(
         [
             q0s,
-            scales[0].astype(dtype),
-            *scales[1:],
-            targets.astype(dtype),
+            Qs,
+            tau,
+            (targets.astype(dtype) - q0s) / Qs,  # a POSITION event's target, lane units
+            jnp.where(valid, t_max / tau, 0.0),
             kinds.astype(dtype),
             rtols.astype(dtype),
             atols.astype(dtype),
+            sigma0,
             # The first step's length: computed in the refill, its `pow` (a libm
             # call per lane) cost ~8 ns per lane-step, twice (XLA also copied it
             # into the step's fusion; measured).
             0.1 * jnp.minimum(rtols, atols).astype(dtype) ** expo,
-        ],
-        axis=1,
+            valid.astype(dtype),
+        ]
     )
+    idle = jnp.asarray([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0], dtype)
+    table = jnp.concatenate([live_tab, idle[:, None]], axis=1)
+    h0_row, valid_row, sigma_row = len(_PARAMS) + 1, len(_PARAMS) + 2, len(_PARAMS)
 
     def load(idx):
         """Lane parameters and initial state for queue positions `idx` (>= n: idle)."""
         live = idx < n_live
-        row = table[jnp.minimum(idx, n - 1)]
-        q0 = jnp.where(live, row[:, 0], 1.0)
-        valid = row[:, 1] > 0
-        Qs, tau, sigma, target = row[:, 2], row[:, 3], row[:, 4], row[:, 5]
-        kind = row[:, 6].astype(kinds.dtype)
-        rtol, atol = row[:, 7], row[:, 8]
-        z = jnp.zeros_like(q0)
-        h0 = row[:, 9]
+        p = table[:, jnp.where(live, idx, n)]
+        valid = p[valid_row] > 0
+        z = jnp.zeros_like(p[0])
         # The error bound's sums (`_screen`), one array of five columns: the phase
         # (ph), energy errors times their leverage (J), ∫ds/v² (F; from rest its
         # finite part), the same without the first step (G), and the energy errors
         # so far (D). (One array: one select per refill and per step, not five.)
         sums = dict(sums=jnp.zeros(z.shape + (5,), dtype)) if cfg.screen else {}
         return dict(
+            p=p[: len(_PARAMS)],
             idx=jnp.where(live, idx, n).astype(jnp.int32),
-            done=~live | ~valid,
+            done=~valid,
             raw=jnp.where(live & ~valid, INVALID, LOCATED).astype(jnp.int32),
-            q0=q0,
-            Qs=Qs,
-            tau=tau,
-            sigma=sigma,
+            sigma=p[sigma_row],
             leg=jnp.zeros_like(idx, jnp.int32),
             s=z,
             x=z,
             v=z,
-            a=sigma,  # q̈(q0) in the lane's units is ±1 by construction
-            h=h0,
+            a=p[sigma_row],  # q̈(q0) in the lane's units is ±1 by construction
+            h=p[h0_row],
             steps=jnp.zeros_like(idx, jnp.int32),
             # Event location: trials from the frozen base (s, x, v, a).
             locating=jnp.zeros_like(idx, bool),
@@ -588,11 +598,6 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             gp=z,
             hsave=z,  # the controller's step size when the crossing was found
             tries=jnp.zeros_like(idx, jnp.int32),
-            limit=jnp.where(live & valid, t_max / tau, 0.0),
-            xt=(target - q0) / Qs,  # the target of a POSITION event, lane units
-            kind=kind,
-            rtol=rtol,
-            atol=atol,
             **sums,
         )
 
@@ -600,11 +605,10 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         return _event_value(lane["kind"], lane["sigma"], lane["xt"], x, v, a)
 
     def body(carry):
-        lane, free, pending, out, nxt, it = carry
-        # Lanes freed by the last iteration take their new amplitudes.
-        lane = jax.tree.map(
-            lambda new, old: jnp.where(_col(free, new), new, old), load(pending), lane
-        )
+        lane, out, nxt, it = carry
+        params = {k: lane["p"][i] for i, k in enumerate(_PARAMS)}
+        params["kind"] = params["kind"].astype(kinds.dtype)
+        lane = dict(lane, **params)
         s, x, v, a, h = lane["s"], lane["x"], lane["v"], lane["a"], lane["h"]
         active = ~lane["done"]
 
@@ -619,7 +623,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
                 tab.order,
                 dtype,
                 True,
-                vectorized_trig=fast_step_trig,
+                vectorized_trig=True,
             )
             cap = jnp.maximum(lane["limit"] - s, dtmin)
             x1, v1, a1, h, te, inner, W, dq, dv = _taylor_step(
@@ -814,6 +818,8 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         )
         lane["hp"] = jnp.where(locating | crossed, h, lane["hp"])
         lane["gp"] = jnp.where(locating | crossed, g1, lane["gp"])
+        for k in _PARAMS:
+            del lane[k]
 
         # --- lanes that are done hand in their result and are given the next amplitude
         done = lane["done"] & (lane["idx"] < n)
@@ -822,28 +828,36 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             cols += [lane["sums"][:, i] for i in range(len(_SCREEN_OUT))]
         rows = jnp.stack(cols, axis=1)
         out = out.at[jnp.where(done, lane["idx"], n)].set(rows, mode="drop")
+        # Lanes that are done take the next amplitudes, at the end of the iteration:
+        # the next step then reads the carried buffers themselves. (Refilled at
+        # its start, XLA fused the refill's selects into the Taylor step's fusion,
+        # three inputs per field (flag, old, new): with ~17 inputs and 9 outputs
+        # LLVM's loop vectorizer needs more runtime alias checks than its limit,
+        # see `accel_plain`.)
         free = lane["done"]
         rank = jnp.cumsum(free.astype(jnp.int32))
         pending = jnp.where(free, nxt + rank - 1, n).astype(jnp.int32)
-        return lane, free, pending, out, (nxt + rank[-1]).astype(jnp.int32), it + 1
+        new = load(pending)
+        lane = {
+            k: jnp.where(free if k == "p" else _col(free, old), new[k], old)
+            for k, old in lane.items()
+        }
+        return lane, out, (nxt + rank[-1]).astype(jnp.int32), it + 1
 
     def cond(carry):
-        lane, free, pending = carry[:3]
-        return jnp.any((lane["idx"] < n) | (free & (pending < n_live)))
+        lane, _, _, it = carry
+        return jnp.any(lane["idx"] < n) | (it == 0)
 
-    # Every lane starts free with its first amplitude pending: the first iteration's
-    # refill loads it, so no copy of `load` is compiled outside the loop (a default
-    # sweep compiles 151 fusions instead of 166, ~15 ms each; the same numbers).
-    first = jnp.arange(W, dtype=jnp.int32)
-    lane = jax.tree.map(
-        lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(load, first)
-    )
+    # Every lane starts done and idle: the first iteration steps nothing and its
+    # refill loads the first amplitudes, so no copy of `load` is compiled outside
+    # the loop (a default sweep compiles 151 fusions instead of 166, ~15 ms each;
+    # the same numbers).
+    shapes = jax.eval_shape(load, jnp.arange(W, dtype=jnp.int32))
+    lane = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+    lane = dict(lane, done=jnp.ones(W, bool), idx=jnp.full(W, n, jnp.int32))
     out = jnp.zeros((n, len(keys)), dtype)
-    # Lanes that could not start are recorded at the end of the first iteration.
-    free = jnp.ones(W, bool)
-    nxt, it = jnp.asarray(W, jnp.int32), jnp.zeros((), jnp.int32)
-    init = (lane, free, first, out, nxt, it)
-    lane, _, _, out, _, iterations = jax.lax.while_loop(cond, body, init)
+    nxt, it = jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32)
+    lane, out, _, iterations = jax.lax.while_loop(cond, body, (lane, out, nxt, it))
     out = {k: out[:, i] for i, k in enumerate(keys)}
     out["raw"] = out["raw"].astype(jnp.int32)
     out["steps"] = out["steps"].astype(jnp.int32)
