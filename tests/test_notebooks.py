@@ -10,9 +10,17 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
 NOTEBOOKS = sorted((pathlib.Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
+# The two longest at small size (40-50 s each on the CI's 2 cores, mostly compiling
+# many sweep configurations) run with `-m slow`; the tautochrone notebook (the
+# gradient through the sweep) and the two tutorials run every time.
+_SLOW = {"speed_vs_accuracy", "isochronism"}
+_CASES = [
+    pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if p.stem in _SLOW else [])
+    for p in NOTEBOOKS
+]
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+@pytest.mark.parametrize("path", _CASES)
 def test_notebook_runs(path, monkeypatch, tmp_path):
     monkeypatch.setenv("LAGRAX_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
