@@ -1833,8 +1833,8 @@ def sweep_periods(
         4.4 s against 10.5 s, measured) and runs it slower. Inside the kernel,
         float64 `sin` and `cos` in the equations are computed by lagrax's own
         vectorized versions (`lagrax/_trig.py`: within 1 ulp, ~5x faster than the
-        C library's on a CPU) in every Runge–Kutta stage, and in the Taylor step
-        when `error_estimate=False`; their argument must stay within
+        C library's on a CPU) in every Runge–Kutta stage and Taylor step; their
+        argument must stay within
         $2^{19}\pi/2 \approx 8.2\cdot10^5$ (radians), beyond which they are NaN
         and the lane fails (its status says so), never a wrong number.
     - `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in `period`
