@@ -115,7 +115,7 @@ def _parser():
         default="auto",
         choices=_SOLVERS,
         help="auto (default): the library's default, Taylor where L's equations allow "
-        "it, Dopri8 otherwise",
+        "it and its program unrolls, Dopri8 otherwise",
     )
     s.add_argument("--rtol", type=float, default=1e-13)
     s.add_argument("--atol", type=float, default=1e-13)

@@ -1076,13 +1076,17 @@ def taylor_coefficients(
                 ),
                 return_shape=True,
             )(s, x, v, *leaves)
-            if len(built.jaxpr.eqns) <= _UNROLL_BUDGET:
+            coeffs.unrolled = len(built.jaxpr.eqns) <= _UNROLL_BUDGET
+            if coeffs.unrolled:
                 flat_out = jax.core.eval_jaxpr(
                     built.jaxpr, built.consts, s, x, v, *leaves
                 )
                 return jax.tree.unflatten(jax.tree.structure(shapes), flat_out)
         return _coefficients(prog, K, s, x, v, leaves, vectorized_trig)
 
+    # Whether the last trace computed a straight-line program (`unrolled` and within
+    # the budget) rather than the loop over orders.
+    coeffs.unrolled = False
     return coeffs
 
 
@@ -1110,10 +1114,15 @@ class Taylor(eqx.Module):
     consist of primitives with a recurrence (`taylor_coefficients` lists them). For
     one that has none, `Taylor()` raises `NotImplementedError` naming the primitive
     at the first call, and `Taylor(fallback=diffrax.Dopri8())` (the default solver of
-    `sweep_periods`) steps with the fallback instead; which one ran is
-    `SweepResult.solver`. Its forward-mode derivative compiles longer than a
-    Runge–Kutta step's (the recurrence's tangent: `jax.grad` of a 64-amplitude
-    "matched" sweep of the pendulum, first call 10.5 s against 4.4 s with `Dopri8`).
+    `sweep_periods`) steps with the fallback instead. The fallback also steps where
+    the coefficients' straight-line program would exceed ~2000 equations (the
+    θ-form cycloid, the rotating hoop): the kernel would then loop over the orders,
+    measured 5-10x slower than Dopri8 per period and slower to compile (one core,
+    4096 amplitudes: cycloid 17k against 83k periods/s, hoop 4k against 40k); a
+    plain `Taylor()` still takes that loop. Which one ran is `SweepResult.solver`.
+    Its forward-mode derivative compiles longer than a Runge–Kutta step's (the
+    recurrence's tangent: `jax.grad` of a 64-amplitude "matched" sweep of the
+    pendulum, first call 10.5 s against 4.4 s with `Dopri8`).
 
     **Arguments:**
 
@@ -1123,7 +1132,7 @@ class Taylor(eqx.Module):
         |\ddot q_0|}$ (default 2, a third of a small oscillation's period).
     - `fallback`: `None` (default), or an adaptive explicit Runge–Kutta diffrax
         solver to step with where the acceleration has a primitive without a
-        recurrence.
+        recurrence or a program too large to unroll.
 
     **Example:**
 
@@ -1172,3 +1181,25 @@ class Taylor(eqx.Module):
         except NotImplementedError:
             return False
         return True
+
+    def unrolls(self, accel: Callable, dtype, *params) -> bool:
+        """Whether the period kernel computes `accel`'s coefficients at this order as
+        one straight-line program (at most `_UNROLL_BUDGET` equations) rather than
+        by the slower loop over orders; arguments as `supports` (which must hold).
+        Traced once, nothing is evaluated."""
+        lanes = [
+            jax.ShapeDtypeStruct((1, *p.shape), p.dtype)
+            if isinstance(p, jax.ShapeDtypeStruct)
+            else jax.ShapeDtypeStruct((1, *np.shape(p)), jnp.asarray(p).dtype)
+            for p in params
+        ]
+        one = jax.ShapeDtypeStruct((1,), dtype)
+        coeffs = taylor_coefficients(
+            lambda s, x, v, p: accel(s, x, v, *p),
+            self.order,
+            dtype,
+            unrolled=True,
+            vectorized_trig=True,
+        )
+        jax.eval_shape(lambda s, x, v, p: coeffs(s, x, v, p), one, one, one, lanes)
+        return coeffs.unrolled

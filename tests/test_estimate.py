@@ -67,6 +67,24 @@ def test_the_default_steps_with_taylor_where_it_can():
         lagrax.sweep_periods(erf_well, a, solver=lagrax.Taylor())
 
 
+def test_the_default_falls_back_where_the_program_is_too_large_to_unroll():
+    # The θ-form cycloid's order-20 program has ~5000 equations: the kernel would
+    # loop over the orders, 5x slower than Dopri8 (measured); the same pendulum in
+    # u = cos(θ/2) (harmonic) and the plain pendulum unroll and step with Taylor.
+    from lagrax._sweep import resolve_solver
+
+    default = lagrax.Taylor(fallback=dfx.Dopri8())
+    f64 = jnp.float64
+    assert resolve_solver(default, cycloid.lagrangian(), f64) == dfx.Dopri8()
+    assert resolve_solver(default, cycloid.lagrangian_u(), f64) == lagrax.Taylor()
+    assert resolve_solver(default, PENDULUM, f64) == lagrax.Taylor()
+    # The fallback is the one asked for, and a low order fits where 20 does not.
+    tsit = lagrax.Taylor(fallback=dfx.Tsit5())
+    assert resolve_solver(tsit, cycloid.lagrangian(), f64) == dfx.Tsit5()
+    low = lagrax.Taylor(order=4, fallback=dfx.Dopri8())
+    assert resolve_solver(low, cycloid.lagrangian(), f64) == lagrax.Taylor(order=4)
+
+
 @solvers
 def test_pendulum_default_method_meets_1e12_with_bounded_estimates(solver):
     a = jnp.linspace(0.01, 3.1, 256)
