@@ -178,3 +178,24 @@ def test_a_default_sweep_beyond_the_range_fails_its_lanes():
     # The same pendulum within the range: both lanes succeed.
     near = lambda q, qd, t: 0.5 * qd[0] ** 2 + jnp.cos(q[0] + 2e4 * jnp.pi)
     assert np.all(lagrax.sweep_periods(near, jnp.array([0.5, 1.0])).ok)
+
+
+def test_the_controllers_root_is_accurate_and_the_same_in_every_lane():
+    # Dopri8's step-size factor inv ** (1/8) by three square roots (`_sweep._root`):
+    # within 2 ulp of the exact root, and the same bits whatever a value's position
+    # in the array (vector body or scalar remainder of XLA's loop), which a sweep's
+    # lanes rely on (results independent of chunk size).
+    from lagrax._sweep import _root
+
+    rng = np.random.default_rng(0)
+    x = 10.0 ** rng.uniform(-12, 12, 37)
+    f = jax.jit(lambda x: _root(x, 8.0))
+    together = np.asarray(f(jnp.asarray(x)))
+    alone = np.array([float(f(jnp.asarray(xi[None]))[0]) for xi in x])
+    np.testing.assert_array_equal(together, alone)
+    exact = np.array([float(mpmath.root(mpmath.mpf(float(xi)), 8)) for xi in x])
+    assert np.max(np.abs(together - exact) / np.spacing(exact)) <= 2
+    # Not a power of two: the plain power.
+    np.testing.assert_allclose(
+        np.asarray(_root(jnp.asarray(x), 5.0)), x**0.2, rtol=4e-16
+    )
