@@ -254,6 +254,17 @@ def call_user(f, name, signature, *args):
 # Functions already probed by `check_indices`, with the shapes and dtypes they were
 # probed at: an eager loop over `accelerations` probes its `L` once.
 _PROBED = weakref.WeakKeyDictionary()
+
+
+def _probed(f) -> set:
+    """The argument signatures `f` was checked at (a fresh set where `f` cannot be
+    a weak key: not hashable, e.g. an `eqx.Module` with array fields)."""
+    try:
+        return _PROBED.setdefault(f, set())
+    except TypeError:
+        return set()
+
+
 _LAGRAX = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -335,14 +346,14 @@ def check_indices(f, name: str, signature: str, *args):
     the other checks.
     """
     key = tuple((jnp.shape(a), jnp.result_type(a)) for a in args)
-    if key in _PROBED.get(f, ()):  # (jax.eval_shape, before, needs weakrefs too)
+    if key in _probed(f):  # (jax.eval_shape, before, needs weakrefs too)
         return
     try:
         if not _indexes_dynamically(jax.make_jaxpr(f)(*args).jaxpr):
             # Static indices out of range fail while tracing; only gathers and
             # dynamic slices can clamp silently. (Evaluating the checked jaxpr op
             # by op compiles each op on a first call: ~0.1 s, measured.)
-            _PROBED.setdefault(f, set()).add(key)
+            _probed(f).add(key)
             return
         checked = checkify.checkify(f, errors=checkify.index_checks)
         with _explicit_gather_modes_unchecked():
@@ -375,7 +386,7 @@ def check_indices(f, name: str, signature: str, *args):
             "the index silently (q[1] of a q of shape (1,) reads q[0]) and give "
             "wrong numbers: index only the coordinates the function is given."
         )
-    _PROBED.setdefault(f, set()).add(key)
+    _probed(f).add(key)
 
 
 def check_lagrangian(L, q, qdot, t, *, what: str = ""):

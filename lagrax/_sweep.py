@@ -67,6 +67,7 @@ closes over takes one forward pass per parameter.
 import functools
 import weakref
 from collections.abc import Callable
+from typing import Any
 
 import diffrax as dfx
 import equinox as eqx
@@ -1723,21 +1724,48 @@ def _zeros_if_symbolic(t, like):
     return t
 
 
+class _WithParameters(eqx.Module):
+    """A Lagrangian that is a pytree with float arrays (an `eqx.Module` with
+    parameters), as a hashable function of `(q, qdot, t, *arrays)`."""
+
+    static: Any = eqx.field(static=True)
+    treedef: Any = eqx.field(static=True)
+
+    def __call__(self, q, qdot, t, *arrays):
+        dynamic = jax.tree.unflatten(self.treedef, arrays)
+        return eqx.combine(dynamic, self.static)(q, qdot, t)
+
+
 def closure_converted(L: Callable, dtype):
     """`L` with the tracers it closes over hoisted into explicit arguments.
 
     Returns `(L_c, consts)` with `L_c(q, qdot, t, *consts) == L(q, qdot, t)`. When `L`
     closes over no tracer, `L_c` is `L` itself, so the compiled
-    kernel is found again on the next call with the same `L`.
+    kernel is found again on the next call with the same `L`. A Lagrangian that is
+    a pytree with float arrays (an `eqx.Module` with parameters) passes them as
+    `consts` (its compiled kernel is found again for new parameter values, and
+    periods are differentiable with respect to them).
     """
+    clean = getattr(jax._src.core, "trace_state_clean", None)
+    clean = clean is not None and clean()
+    z = np.zeros((1,), dtype)  # (NumPy: `jnp.zeros` compiles on a first call)
+    dynamic, static = eqx.partition(L, eqx.is_inexact_array)
+    arrays, treedef = jax.tree.flatten(dynamic)
+    if arrays:
+        L_p = _WithParameters(static, treedef)
+        if clean:
+            return L_p, list(arrays)
+        # Tracers closed over elsewhere (a function among its fields) come after.
+        converted, extra = jax.closure_convert(L_p, z, z, np.zeros((), dtype), *arrays)
+        if not extra:
+            return L_p, list(arrays)
+        return converted, list(arrays) + list(extra)
     # Outside every transformation `L` closes over no tracer (a leaked one would
     # raise anyway): nothing to hoist, and no trace of `L` per call (with the other
     # checks ~0.5 ms before each dispatch, ~8% of a default 4096-amplitude sweep on
     # one core, measured). (A private JAX function; without it, trace as before.)
-    clean = getattr(jax._src.core, "trace_state_clean", None)
-    if clean is not None and clean():
+    if clean:
         return L, []
-    z = np.zeros((1,), dtype)  # (NumPy: `jnp.zeros` compiles on a first call)
     converted, consts = jax.closure_convert(L, z, z, np.zeros((), dtype))
     if not consts:
         return L, []
@@ -1839,7 +1867,9 @@ def sweep_periods(
 
     **Arguments:**
 
-    - `L`: the Lagrangian `L(q, qdot, t) -> scalar` of one coordinate.
+    - `L`: the Lagrangian `L(q, qdot, t) -> scalar` of one coordinate: a function,
+        or a pytree such as an `equinox.Module` whose float array fields are its
+        parameters (passed to the compiled kernel as arguments).
     - `q0`: release points, a 1-D float array.
     - `solver`: default `Taylor(fallback=Dopri8())` (above); any solver `period`
         takes. For a sweep to be differentiated, `solver=diffrax.Dopri8()` compiles

@@ -55,3 +55,34 @@ def test_jacobian_wrt_track_matches_finite_differences():
             e = jnp.zeros(K).at[k].set(h)
             fd = (periods(A0 + e) - periods(A0 - e)) / (2 * h)
             np.testing.assert_allclose(J[:, k], np.asarray(fd), rtol=1e-5, atol=1e-9)
+
+
+def test_a_module_lagrangian_with_parameters():
+    # L as an `eqx.Module` with an array field: its parameters pass to the kernel as
+    # arguments (no recompilation for new values), and periods are differentiable
+    # with respect to them: the pendulum's T ∝ g^(-1/2), so dT/dg = -T / (2g).
+    import diffrax as dfx
+    import equinox as eqx
+
+    from lagrax.systems import pendulum
+
+    class Pendulum(eqx.Module):
+        g: jax.Array
+
+        def __call__(self, q, qdot, t):
+            return 0.5 * qdot[0] ** 2 + self.g * jnp.cos(q[0])
+
+    a = jnp.array([0.1, 1.0, 2.0])
+    exact = np.asarray(pendulum.period(a))
+    for g in (1.0, 4.0):
+        res = lagrax.sweep_periods(Pendulum(jnp.asarray(g)), a)
+        assert np.all(np.asarray(res.status) == 0)
+        np.testing.assert_allclose(res.periods, exact / np.sqrt(g), rtol=1e-12)
+
+    def sweep(g):
+        return lagrax.sweep_periods(Pendulum(g), a, solver=dfx.Dopri8()).periods
+
+    dT = jax.jacfwd(sweep)(jnp.asarray(1.0))
+    np.testing.assert_allclose(dT, -0.5 * exact, rtol=1e-9)
+    grad = jax.grad(lambda m: lagrax.period(m, 1.0))(Pendulum(jnp.asarray(1.0)))
+    np.testing.assert_allclose(grad.g, -0.5 * float(pendulum.period(1.0)), rtol=1e-9)
