@@ -479,8 +479,10 @@ def resolve_solver(solver, L, dtype):
         # With a recurrence for every primitive, and a program small enough to be
         # unrolled: the loop over orders ran 5-10x slower than the fallback (Taylor
         # docstring; measured).
-        supported = plain.supports(accel, dtype, scalar, scalar, scalar)
-        supported = supported and plain.unrolls(accel, dtype, scalar, scalar, scalar)
+        try:  # (tracing the order-K program also finds a primitive without one)
+            supported = plain.unrolls(accel, dtype, scalar, scalar, scalar)
+        except NotImplementedError:
+            supported = False
         # The solver itself, made once: building it per call cost ~10 µs.
         known[key] = plain if supported else solver.fallback
     return known[key]
@@ -548,7 +550,6 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     # Each amplitude's release quantities, once for the whole queue: computing them
     # in the refill for every lane cost ~20% of a Taylor sweep (measured, 1 core).
     rel = _lane_scales(L, q0s, consts)
-    scales = rel["valid"], rel["Qs"], rel["tau"], rel["sigma"]
 
     # Each amplitude's constants, one column per amplitude and a last column for
     # idle lanes, so that a refill is one gather (each gather, scatter or small
@@ -557,35 +558,35 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     # carries its column as ONE array `p` (a row per constant), not eight: one
     # input of the Taylor step's fusion instead of eight, under the limit of LLVM's
     # runtime alias checks (see `accel_plain`).
-    valid = scales[0]
-    Qs, tau, sigma0 = scales[1:]
-    live_tab = jnp.stack(
-        [
-            q0s,
-            Qs,
-            tau,
-            (targets.astype(dtype) - q0s) / Qs,  # a POSITION event's target, lane units
-            jnp.where(valid, t_max / tau, 0.0),
-            kinds.astype(dtype),
-            rtols.astype(dtype),
-            atols.astype(dtype),
-            sigma0,
-            # The first step's length: computed in the refill, its `pow` (a libm
-            # call per lane) cost ~8 ns per lane-step, twice (XLA also copied it
-            # into the step's fusion; measured).
-            0.1 * jnp.minimum(rtols, atols).astype(dtype) ** expo,
-            valid.astype(dtype),
-        ]
-    )
-    idle = jnp.asarray([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0], dtype)
-    table = jnp.concatenate([live_tab, idle[:, None]], axis=1)
-    h0_row, valid_row, sigma_row = len(_PARAMS) + 1, len(_PARAMS) + 2, len(_PARAMS)
+    valid, Qs, tau = rel["valid"], rel["Qs"], rel["tau"]
+    rows = {  # name: (its value per amplitude, its value on an idle lane)
+        "q0": (q0s, 1.0),
+        "Qs": (Qs, 1.0),
+        "tau": (tau, 1.0),
+        # A POSITION event's target, in the lane's units.
+        "xt": ((targets.astype(dtype) - q0s) / Qs, 0.0),
+        "limit": (jnp.where(valid, t_max / tau, 0.0), 0.0),
+        "kind": (kinds.astype(dtype), 0.0),
+        "rtol": (rtols.astype(dtype), 1.0),
+        "atol": (atols.astype(dtype), 1.0),
+        "sigma": (rel["sigma"], 1.0),
+        # The first step's length: computed in the refill, its `pow` (a libm call
+        # per lane) cost ~8 ns per lane-step, twice (XLA also copied it into the
+        # step's fusion; measured).
+        "h0": (0.1 * jnp.minimum(rtols, atols).astype(dtype) ** expo, 1.0),
+        "valid": (valid.astype(dtype), 0.0),
+    }
+    assert tuple(rows)[: len(_PARAMS)] == _PARAMS  # `p` is the first rows
+    live_cols = jnp.stack([v for v, _ in rows.values()])
+    idle_col = np.array([[idle] for _, idle in rows.values()], dtype)
+    table = jnp.concatenate([live_cols, idle_col], axis=1)
+    row = {k: i for i, k in enumerate(rows)}
 
     def load(idx):
         """Lane parameters and initial state for queue positions `idx` (>= n: idle)."""
         live = idx < n_live
         p = table[:, jnp.where(live, idx, n)]
-        valid = p[valid_row] > 0
+        valid = p[row["valid"]] > 0
         z = jnp.zeros_like(p[0])
         # The error bound's sums (`_screen`), one array of five columns: the phase
         # (ph), energy errors times their leverage (J), ∫ds/v² (F; from rest its
@@ -597,13 +598,13 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             idx=jnp.where(live, idx, n).astype(jnp.int32),
             done=~valid,
             raw=jnp.where(live & ~valid, INVALID, LOCATED).astype(jnp.int32),
-            sigma=p[sigma_row],
+            sigma=p[row["sigma"]],
             leg=jnp.zeros_like(idx, jnp.int32),
             s=z,
             x=z,
             v=z,
-            a=p[sigma_row],  # q̈(q0) in the lane's units is ±1 by construction
-            h=p[h0_row],
+            a=p[row["sigma"]],  # q̈(q0) in the lane's units is ±1 by construction
+            h=p[row["h0"]],
             steps=jnp.zeros_like(idx, jnp.int32),
             # Event location: trials from the frozen base (s, x, v, a).
             locating=jnp.zeros_like(idx, bool),
