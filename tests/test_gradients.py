@@ -86,3 +86,62 @@ def test_a_module_lagrangian_with_parameters():
     np.testing.assert_allclose(dT, -0.5 * exact, rtol=1e-9)
     grad = jax.grad(lambda m: lagrax.period(m, 1.0))(Pendulum(jnp.asarray(1.0)))
     np.testing.assert_allclose(grad.g, -0.5 * float(pendulum.period(1.0)), rtol=1e-9)
+
+
+def test_only_the_differentiated_inputs_take_forward_passes():
+    # The kernel's derivative takes one forward pass for q0 and one per scalar
+    # parameter, but only for inputs whose tangent is not zero: dT/dq0 of a
+    # Lagrangian with 1 + P parameters is one pass (no batch of 2 + P directions
+    # in the program, as before), and derivatives along both are still right.
+    import diffrax as dfx
+    import equinox as eqx
+
+    from lagrax.systems import pendulum
+
+    P = 5
+
+    class Pendulum(eqx.Module):
+        g: jax.Array
+        c: jax.Array  # (1 - cos q)^(k + 2) terms of the potential, zero here
+
+        def __call__(self, q, qdot, t):
+            u = 1 - jnp.cos(q[0])
+            extra = sum(self.c[k] * u ** (k + 2) for k in range(P))
+            return 0.5 * qdot[0] ** 2 + self.g * jnp.cos(q[0]) - extra
+
+    a = jnp.array([0.3, 1.0, 2.0])
+    m = Pendulum(jnp.asarray(1.0), jnp.zeros(P))
+
+    def sweep(a, c):
+        m_c = eqx.tree_at(lambda m: m.c, m, c)
+        return lagrax.sweep_periods(
+            m_c, a, solver=dfx.Dopri8(), rtol=1e-12, atol=1e-12, error_estimate=False
+        ).periods
+
+    jac = jax.jacfwd(lambda a: sweep(a, m.c))
+    assert P + 2 not in _leading_dims(jax.make_jaxpr(jac)(a).jaxpr)
+    h = 1e-6
+    exact = lambda a: np.asarray(pendulum.period(np.asarray(a, np.float64)))
+    fd_a = (exact(a + h) - exact(a - h)) / (2 * h)
+    np.testing.assert_allclose(np.diag(np.asarray(jac(a))), fd_a, rtol=1e-7)
+
+    # Along q0 and the parameters at once; new parameter values need no new
+    # compilation, so the differences of the parameters are cheap.
+    dq, vc = jnp.array([1.0, -2.0, 0.5]), jnp.linspace(0.1, 1.0, P)
+    _, both = jax.jvp(sweep, (a, m.c), (dq, vc))
+    h = 1e-5
+    fd_c = (sweep(a, m.c + h * vc) - sweep(a, m.c - h * vc)) / (2 * h)
+    np.testing.assert_allclose(both, fd_a * dq + fd_c, rtol=1e-6)
+
+
+def _leading_dims(jaxpr):
+    """The leading dimensions of every value a jaxpr computes, nested ones too."""
+    dims = set()
+    for eqn in jaxpr.eqns:
+        dims |= {v.aval.shape[0] for v in eqn.outvars if getattr(v.aval, "shape", ())}
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (tuple, list)) else (p,):
+                sub = getattr(sub, "jaxpr", sub)
+                if hasattr(sub, "eqns"):
+                    dims |= _leading_dims(sub)
+    return dims
