@@ -1661,8 +1661,7 @@ def _mirror_symmetric(L, consts, q0, q_m, qd_m, rtols):
         # coincidence cancelling the two at every point is not sought.)
         y = np.array(_MIRROR_POINTS, dtype) * (q0 - q_m)
         w = jnp.full(y.shape, jnp.abs(qd_m))
-        # The eight values of L as one array (one evaluation of L's program per
-        # point, not one per reader: XLA copied it into each, 32 cosines per lane).
+        # (The eight values of L as one array: see the docstring.)
         Ls = jax.vmap(Lr)(
             jnp.concatenate([jnp.stack([q_m, q0]), q_m + y, q_m - y]),
             jnp.concatenate([jnp.stack([z, z]), w, -w]),
