@@ -541,14 +541,13 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     # Sines and cosines by `_trig.sincos`, which XLA vectorizes, not one libm call
     # per lane each (13 per Dopri8 step: Dopri8 quarter 1e-12, pendulum, one core,
     # 260k -> 395-414k periods/s, measured).
-    accel_lanes = jax.jit(jax.vmap(vectorized_trig(accel_one)))
-    # Inside the Taylor step, which is one fusion already: the acceleration's own
-    # `one_fusion` (a reduce) there, read by every output through the event's
-    # location, made XLA's code-duplication limit split the recurrence into ~14
-    # fusions (4x slower per lane-step, measured).
-    # The vectorized sines there too. The step's loop vectorizes only while LLVM's
-    # loop vectorizer can prove its buffers apart: in a large fusion (the Taylor
-    # step with the error bound's sums and the sines, or order >= 22) alias
+    # Without the acceleration's own `one_fusion` (a reduce): inside a step that is
+    # one fusion (the Taylor step; a Runge-Kutta step's outputs, see `body`), a
+    # nested reduce splits it. For the Taylor step, read by every output through the
+    # event's location, XLA's code-duplication limit split the recurrence into ~14
+    # fusions (4x slower per lane-step); a Dopri8 sweep ran 13% slower (measured).
+    # The Taylor step's loop vectorizes only while LLVM's loop vectorizer can
+    # prove its buffers apart: in a large fusion (the Taylor step with the error bound's sums and the sines, or order >= 22) alias
     # analysis no longer separates them and it falls back to runtime alias checks,
     # one per (output, input) pair and per pair of outputs, with a limit of 128
     # (`-vectorize-memory-check-threshold`); above it the loop stays scalar, 3.4x
@@ -636,6 +635,11 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             **sums,
         )
 
+    def fuse_fields(fields):
+        """The same lane fields, those of shape (width,) from one fusion."""
+        flat = {k: val for k, val in fields.items() if val.shape == (width,)}
+        return dict(fields, **one_fusion(flat))
+
     def g_of(lane, x, v, a):
         return _event_value(lane["kind"], lane["sigma"], lane["xt"], x, v, a)
 
@@ -648,7 +652,7 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         active = ~lane["done"]
 
         def accel(si, xi, vi):
-            return accel_lanes(lane["q0"], lane["Qs"], lane["tau"], si, xi, vi)
+            return accel_plain(lane["q0"], lane["Qs"], lane["tau"], si, xi, vi)
 
         rtol, atol, kind = lane["rtol"], lane["atol"], lane["kind"]
         if taylor:
@@ -683,6 +687,12 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             sx = atol + rtol * jnp.maximum(jnp.abs(x), jnp.abs(x1))
             sv = atol + rtol * jnp.maximum(jnp.abs(v), jnp.abs(v1))
             err = jnp.sqrt(0.5 * ((ex / sx) ** 2 + (ev / sv) ** 2))
+            # The step's outputs from one fusion: each stage's value has several
+            # readers (the later stages, b, b_error), so XLA kept the 13 stages as
+            # separate fusions (Dopri8 quarter 1e-12, pendulum, one core: 472-477k
+            # -> 505k periods/s, measured).
+            fused = one_fusion(dict(x1=x1, v1=v1, a1=a1, err=err))
+            x1, v1, a1, err = (fused[k] for k in ("x1", "v1", "a1", "err"))
         finite = jnp.isfinite(err) & jnp.isfinite(x1) & jnp.isfinite(v1)
         finite = finite & jnp.isfinite(a1)
         accept = finite & (err <= 1.0)
@@ -776,7 +786,6 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
         # After a located event, go on with the step size from before the crossing.
         h_new = jnp.where(converged, hsave, h_new)
         steps = lane["steps"] + active.astype(jnp.int32)
-        est = {}
         if cfg.screen:
             # The step's errors (truncation bound plus rounding of the state), as a
             # time shift δx/|v| and an energy error per unit mass |v|δv + |a|δx;
@@ -790,7 +799,6 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             sums = lane["sums"]
             inc = (shift_, sums[:, 4] * W, W, jnp.where(from_rest, 0.0, W), e_err)
             inc = jax.lax.stop_gradient(jnp.stack(inc, axis=1))
-            est = dict(sums=jnp.where(moved[:, None], sums + inc, sums))
 
         # --- lane outcomes
         escape = _ESCAPE * jnp.maximum(lane["Qs"], 1.0) / lane["Qs"]
@@ -849,12 +857,22 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             ghi=ghi,
             tries=tries,
             hsave=hsave,
-            **est,
         )
         lane["hp"] = jnp.where(locating | crossed, h, lane["hp"])
         lane["gp"] = jnp.where(locating | crossed, g1, lane["gp"])
         for k in _PARAMS:
             del lane[k]
+        # The lane's new fields from one fusion, with `moved` for the error bound's
+        # sums (below): XLA computed them in ~30 small fusions, each a separate call
+        # (~0.1-0.2 µs on a CPU), and copied ten carried fields per iteration because
+        # some readers of their old values were not ordered before the writers.
+        # Measured (one core, alternated 8-s loops): Dopri8 "quarter" 1e-12 +15-20%,
+        # the default sweep +4-6% (with `moved` outside it, its sums' fusion
+        # recomputed it: -6%).
+        lane = fuse_fields(dict(lane, **(dict(moved=moved) if cfg.screen else {})))
+        if cfg.screen:
+            moved = lane.pop("moved")
+            lane["sums"] = jnp.where(moved[:, None], sums + inc, sums)
 
         # --- lanes that are done hand in their result and are given the next amplitude
         done = lane["done"] & (lane["idx"] < n)
@@ -877,6 +895,8 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
             k: jnp.where(free if k == "p" else _col(free, old), new[k], old)
             for k, old in lane.items()
         }
+        # (One fusion again: Dopri8 "quarter" +8-12%, the default sweep neutral.)
+        lane = fuse_fields(lane)
         # Lanes with an amplitude (to step, or to hand in): those not free, and the
         # free ones that took one. Counted from the refill's own total, not by a
         # reduction over the lanes in `cond` (three more kernels per iteration).
