@@ -547,8 +547,9 @@ def _run_queue(L, cfg: _Pass, q0s, targets, kinds, rtols, atols, t_max, consts, 
     # event's location, XLA's code-duplication limit split the recurrence into ~14
     # fusions (4x slower per lane-step); a Dopri8 sweep ran 13% slower (measured).
     # The Taylor step's loop vectorizes only while LLVM's loop vectorizer can
-    # prove its buffers apart: in a large fusion (the Taylor step with the error bound's sums and the sines, or order >= 22) alias
-    # analysis no longer separates them and it falls back to runtime alias checks,
+    # prove its buffers apart: in a large fusion (the Taylor step with the error
+    # bound's sums and the sines, or order >= 22) alias analysis no longer
+    # separates them and it falls back to runtime alias checks,
     # one per (output, input) pair and per pair of outputs, with a limit of 128
     # (`-vectorize-memory-check-threshold`); above it the loop stays scalar, 3.4x
     # slower ("too many memory checks needed" in its remarks; measured). With 17
