@@ -49,8 +49,11 @@ def one_fusion(values: dict) -> dict:
     - the sweep kernel's Taylor step, whose step length, position and velocity
       share one straight-line recurrence: six copies of it per iteration without,
       ~460 ns per lane-step (4096 lanes); ~110 ns with, within 10% of the same
-      program with a single output. Applied to the whole lane update instead it
-      made no difference for Taylor and cost 30% for Dopri8.
+      program with a single output.
+    - the sweep kernel's lane update around the step (the new values of ~20 lane
+      fields, ~30 small fusions and copies per iteration without): Dopri8 +15-20%,
+      the default sweep +4-6%. (In round 2, one fusion of the step and the lane
+      update together had cost Dopri8 30%: keep the step a fusion of its own.)
     - the accelerations of a double pendulum written from particle velocities,
       inside a fixed-step Tsit5 solve (256 lanes): see `_mechanics._accelerations`.
 
