@@ -99,6 +99,10 @@ def _kernel_cos(x, y):
     return w + (((1.0 - w) - hz) + (z * r - x * y))
 
 
+# Compiled as a call (XLA inlines it: the same program) so that its trace is cached
+# per shape: the default sweep traces ~20 sincos calls, and the first call's tracing
+# took 0.83-0.88 -> 0.68-0.71 s (one core, measured).
+@jax.jit
 def _sincos(x):
     x = jnp.where(jnp.abs(x) <= _RANGE, x, jnp.nan)  # (NaN propagates to both)
     n, y0, y1 = _reduce(x)
