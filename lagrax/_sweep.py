@@ -1181,14 +1181,18 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
         step = jnp.maximum(step, 4 * eps * jnp.maximum(jnp.abs(b), jnp.abs(d)))
         b2 = jnp.where(more, b + out * step, b)
         L2 = Lr_v(b2)
-        return (
-            jnp.where(more, b, a),
-            b2,
-            jnp.where(more, Fb, Fa),
-            jnp.where(more, L2 - E0, Fb),
-            jnp.where(more, L2, Lb),
-            k + 1,
+        new = dict(
+            a=jnp.where(more, b, a),
+            b=b2,
+            Fa=jnp.where(more, Fb, Fa),
+            Fb=jnp.where(more, L2 - E0, Fb),
+            Lb=jnp.where(more, L2, Lb),
         )
+        # (Each loop's new values from one fusion, as in the sweep's loop: 8 -> 3
+        # and 6 -> 2 kernels; the default sweep's backend compile 3.26-3.51 ->
+        # 3.20-3.34 s, three alternated pairs, one core.)
+        new = one_fusion(new)
+        return (*new.values(), k + 1)
 
     a, b, Fa, Fb, Lb, _ = jax.lax.while_loop(
         lambda c: jnp.any(c[3] > noise(c[4])) & (c[5] < _MAX_EXPAND),
@@ -1210,7 +1214,9 @@ def _far_turning_point(L, consts, q0, q_m, with_band=True):
         ok = jnp.isfinite(x_new) & ((x_new - a) * (x_new - b) < 0)
         x_new = jnp.where(ok, x_new, 0.5 * (a + b))
         done = done | (jnp.abs(x_new - x) <= 2 * eps * jnp.abs(x))
-        return a, b, jnp.where(done, x, x_new), done, k + 1
+        new = dict(a=a, b=b, x=jnp.where(done, x, x_new), done=done)
+        new = one_fusion(new)
+        return (*new.values(), k + 1)
 
     _, _, x, _, _ = jax.lax.while_loop(
         lambda c: jnp.any(found & ~c[3]) & (c[4] < _MAX_NEWTON),
