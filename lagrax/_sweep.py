@@ -9,9 +9,10 @@ never wait for the slowest one and the input order does not matter.
 
 Measured on the pendulum (4096 lanes, one CPU core, float64): diffrax's `Dopri8().step`
 called in a lean loop costs ~600–700 ns per lane-step, most of it the stage loop and
-general tree operations; the step written out here costs a small multiple of the vector
-field itself (see `benchmarks/sweep.py`, which prints ns per lane-step and the
-vector-field-only ceiling).
+general tree operations; the step written out here, with the loop's bookkeeping,
+costs 73-83 ns per lane-step for Dopri8, 2.7-3.1x the vector field alone (see
+`benchmarks/sweep.py`, which prints ns per lane-step and the vector-field-only
+ceiling).
 
 With `solver=lagrax.Taylor()` the step is a Taylor expansion of order K instead
 (`_taylor_step`): coefficients by recurrence from the acceleration's jaxpr
@@ -19,9 +20,16 @@ With `solver=lagrax.Taylor()` the step is a Taylor expansion of order K instead
 coefficients before the step is taken (never rejected), and the step's outputs
 forced into ONE fused loop over the lanes (`one_fusion`): XLA on a CPU otherwise
 duplicates the shared recurrence into each consumer. Measured on the pendulum (one
-core, rtol 1e-14): ~9 lane-steps per quarter period against ~26 for Dopri8, at
-~180-200 ns each, of which the step itself (vectorized, ~1000 flops per lane) is
-~90-110 ns.
+core, rtol 1e-14): ~5 lane-steps per quarter period against ~26 for Dopri8, at
+~115-120 ns each, of which the step itself (vectorized, ~1000 flops per lane) is
+~90-100 ns.
+
+Every iteration is a handful of kernels, because on a CPU each kernel is a separate
+call (~0.1-0.2 µs) and XLA has no multi-output fusion there: the step (a Runge–Kutta
+step's stages, each read by several later ones, would otherwise be 13 fusions), the
+lane update and the refill each leave through one `one_fusion`, with the gather, the
+scatter and the refill's count around them (17 kernels per iteration for Dopri8, ~50
+and ten copies of carried fields before: Dopri8 +20-25% periods/s, measured).
 
 The queue's refill is one gather of packed per-amplitude rows and one scatter of
 packed results per iteration, without a `lax.cond` (each gather, scatter or small
