@@ -1079,11 +1079,14 @@ def _finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
     return (status, t_e, q_end, qdot_end), terms
 
 
-def _device_pass(L, cfg, lanes, t_max, energy_tol, consts):
+@eqx.filter_jit
+def _pass(L, cfg, lanes, consts, t_max, energy_tol):
+    """One pass of the kernel over every lane of one device, compiled once per static
+    configuration (`L`, `cfg`, shapes). `lanes`: per-lane arrays `(q0, targets, kinds,
+    rtols, atols, live)`, the live lanes a prefix (the others are never loaded).
+    Returns `(status, t_event, q_end, qdot_end, steps, *bound_sums), executed`."""
     q0, targets, kinds, rtols, atols, live = lanes
     t_lim = jnp.asarray(_NO_LIMIT if t_max is None else t_max, q0.dtype)
-    # The live lanes are a prefix of the queue (each device's share of a prefix is
-    # one too); the others are never loaded.
     n_live = jnp.sum(live.astype(jnp.int32))
     out, executed, rel = _run_queue(
         L, cfg, q0, targets, kinds, rtols, atols, t_lim, consts, n_live
@@ -1092,44 +1095,6 @@ def _device_pass(L, cfg, lanes, t_max, energy_tol, consts):
         L, consts, q0, targets, kinds, rtols, out, rel, energy_tol
     )
     return (status, t_e, q_e, qd_e, out["steps"], *terms), executed
-
-
-@eqx.filter_jit
-def _pass(L, cfg, devices, lanes, consts, t_max, energy_tol):
-    """One pass of the kernel over every lane and device, compiled once per static
-    configuration (`L`, `cfg`, `devices`, shapes). `lanes`: per-lane arrays `(q0,
-    targets, kinds, rtols, atols, live)`, the live lanes a prefix. Outputs
-    replicated on every device (and process), in input order: `(status, t_event,
-    q_end, qdot_end, steps, *bound_sums), executed`."""
-    n = lanes[0].shape[0]
-    D = len(devices)
-    per = -(-n // D)
-    if per * D > n:  # padded lanes repeat the last one; they are dropped below
-        pad = lambda x: jnp.concatenate([x, jnp.broadcast_to(x[-1], (per * D - n,))])
-        lanes = tuple(pad(x) for x in lanes)
-    # Device d takes lanes d, d + D, ...: neighbouring amplitudes cost about the
-    # same, so interleaving balances the devices.
-    lanes = tuple(x.reshape(per, D).T for x in lanes)
-    run = functools.partial(_device_pass, L, cfg)
-    if D == 1:
-        outs, executed = run(tuple(x[0] for x in lanes), t_max, energy_tol, consts)
-        outs = tuple(x[None] for x in outs)
-    else:
-
-        def local(lanes, t_max, energy_tol, consts):
-            outs, executed = run(tuple(x[0] for x in lanes), t_max, energy_tol, consts)
-            outs = tuple(jax.lax.all_gather(x, "lanes") for x in outs)
-            return outs, jax.lax.psum(executed, "lanes")
-
-        mesh = Mesh(np.array(devices), ("lanes",))
-        outs, executed = jax.shard_map(
-            local,
-            mesh=mesh,
-            in_specs=(P("lanes"), P(), P(), P()),
-            out_specs=P(),
-            check_vma=False,
-        )(lanes, t_max, energy_tol, consts)
-    return tuple(x.T.reshape(-1)[:n] for x in outs), executed
 
 
 # Safeguarded Newton for the far turning point converges in ~5 iterations from the
@@ -1278,7 +1243,7 @@ class _Method(eqx.Module):
 
 
 def _run_method(
-    L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, shift, screened=False
+    L, m, q0, consts, rtols, atols, t_max, energy_tol, shift, screened=False
 ):
     """One solve of every lane by `m.method` (per-lane tolerances): periods (NaN on
     failure), statuses, steps, executed lane-steps, and the far side of each swing.
@@ -1296,7 +1261,6 @@ def _run_method(
     run = lambda q0, targets, kind, rtols, atols, live: _pass(
         L,
         m.pass_,
-        devices,
         (
             q0,
             targets,
@@ -1598,6 +1562,45 @@ def _second_solve_estimate(T, status, T2, status2):
 
 
 def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
+    """`_device_periods` on every device, each over its share of the lanes (device d
+    takes lanes d, d + D, ...: neighbouring amplitudes cost about the same, so
+    interleaving balances the devices), gathered once at the end, in input order and
+    replicated on every device (and process).
+
+    The whole method runs per device, not pass by pass: each device goes through its
+    passes at its own pace and the devices meet once. Sharding each pass instead (a
+    gather after every pass and the second round's lanes compacted across devices)
+    held two devices in step two to four times a sweep: one process with two CPU
+    devices ran no faster than with one (measured, default sweep), and between
+    processes every gather was a round trip of the collectives."""
+    D = len(devices)
+    if D == 1:
+        return _device_periods(L, m, q0, consts, rtol, atol, t_max, energy_tol)
+    n = q0.shape[0]
+    per = -(-n // D)
+    if per * D > n:  # padded lanes repeat the last one; they are dropped below
+        q0 = jnp.concatenate([q0, jnp.broadcast_to(q0[-1], (per * D - n,))])
+
+    def local(q0, consts, rtol, atol, t_max, energy_tol):
+        out = _device_periods(L, m, q0[0], consts, rtol, atol, t_max, energy_tol)
+        T, status, steps, executed, est = out
+        gather = lambda x: jax.lax.all_gather(x, "lanes")
+        return (gather(T), gather(status), gather(steps), gather(est)), jax.lax.psum(
+            executed, "lanes"
+        )
+
+    (T, status, steps, est), executed = jax.shard_map(
+        local,
+        mesh=Mesh(np.array(devices), ("lanes",)),
+        in_specs=(P("lanes"), P(), P(), P(), P(), P()),
+        out_specs=P(),
+        check_vma=False,
+    )(q0.reshape(per, D).T, consts, rtol, atol, t_max, energy_tol)
+    back = lambda x: x.T.reshape(-1)[:n]
+    return back(T), back(status), back(steps), executed, back(est)
+
+
+def _device_periods(L, m, q0, consts, rtol, atol, t_max, energy_tol):
     """Periods, statuses, steps, executed lane-steps and error estimates. With
     `m.screened` the estimate is the first-order bound (`_screen`), and a second
     solve only of the lanes it cannot vouch for (`_run_method`); otherwise the
@@ -1608,7 +1611,7 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     if m.screened:
         rtols, atols = full(rtol, 1.0), full(atol, 1.0)
         out = _run_method(
-            L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, 0.0, True
+            L, m, q0, consts, rtols, atols, t_max, energy_tol, 0.0, True
         )
         T, status, steps, executed, q_far, bound, redo, T2, status2 = out
         # The bound where it vouches for a lane; the second solve's estimate where not.
@@ -1619,7 +1622,7 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
         atols = jnp.concatenate([full(atol, 1.0), full(atol, _LOOSER)])
         shift = jnp.concatenate([jnp.zeros(n, q0.dtype), jnp.ones(n, q0.dtype)])
         T, status, steps, executed, q_far = _run_method(
-            L, m, devices, lanes, consts, rtols, atols, t_max, energy_tol, shift
+            L, m, lanes, consts, rtols, atols, t_max, energy_tol, shift
         )
         T, T2, status, status2 = T[:n], T[n:], status[:n], status[n:]
         steps, q_far = steps[:n] + steps[n:], q_far[:n]
@@ -1627,7 +1630,7 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     else:
         rtols, atols = full(rtol, 1.0), full(atol, 1.0)
         T, status, steps, executed, q_far = _run_method(
-            L, m, devices, q0, consts, rtols, atols, t_max, energy_tol, 0.0
+            L, m, q0, consts, rtols, atols, t_max, energy_tol, 0.0
         )
         status = _blame_coordinates(L, consts, q0, q_far, status)
         T = jnp.where(status == SUCCESS, T, jnp.nan)
