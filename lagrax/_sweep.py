@@ -1610,9 +1610,7 @@ def _device_periods(L, m, q0, consts, rtol, atol, t_max, energy_tol):
     full = lambda x, k: jnp.full((n,), k * x, q0.dtype)
     if m.screened:
         rtols, atols = full(rtol, 1.0), full(atol, 1.0)
-        out = _run_method(
-            L, m, q0, consts, rtols, atols, t_max, energy_tol, 0.0, True
-        )
+        out = _run_method(L, m, q0, consts, rtols, atols, t_max, energy_tol, 0.0, True)
         T, status, steps, executed, q_far, bound, redo, T2, status2 = out
         # The bound where it vouches for a lane; the second solve's estimate where not.
         est = jnp.where(redo, _second_solve_estimate(T, status, T2, status2), bound)
