@@ -208,7 +208,9 @@ def test_cli_distributed_writes_one_file_and_resumes(tmp_path):
     port = free_port()
     procs = [start_cli(port, i, out, cache) for i in range(2)]
     deadline = time.monotonic() + HANG
-    while not any(p.endswith(".npz") for p in _listdir(partial)):
+    # (A finished block: not the ".lagrax-*.npz" temporary file that is renamed to it.)
+    done = lambda: [p for p in _listdir(partial) if p.endswith(".npz") and p[0] != "."]
+    while not done():
         assert all(p.poll() is None for p in procs), procs[0].communicate()[1][-3000:]
         assert time.monotonic() < deadline, "no checkpoint was written"
         time.sleep(0.05)
@@ -216,8 +218,7 @@ def test_cli_distributed_writes_one_file_and_resumes(tmp_path):
         p.kill()
         p.wait()
     assert not out.exists()
-    checkpoints = [p for p in _listdir(partial) if p.endswith(".npz")]
-    assert checkpoints and "manifest.json" in _listdir(partial)
+    assert done() and "manifest.json" in _listdir(partial)
     # Second run: the same command resumes, and process 0 alone writes the result.
     port = free_port()
     procs = [start_cli(port, i, out, cache) for i in range(2)]
