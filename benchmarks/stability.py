@@ -433,7 +433,9 @@ def figure_long(long):
         ax.set_title(f"{sysname}: {what}", fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=6)
-    fig.suptitle(f"Invariants over {long['periods']:g} periods (fixed steps per period)")
+    fig.suptitle(
+        f"Invariants over {long['periods']:g} periods (fixed steps per period)"
+    )
     fig.tight_layout()
     return fig
 

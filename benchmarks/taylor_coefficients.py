@@ -1,9 +1,9 @@
 """Cost of `lagrax._taylor.taylor_coefficients` against one `jnp.sin` call.
 
-Per lane: order-K Taylor coefficients of the pendulum x' = v, v' = -sin(q0 + x), with the
-acceleration from lagrax's autodiff `_accelerations` of L = qdot^2/2 + cos q, at W = 256
-and 4096 lanes, float64, one process. The baseline is `jnp.sin` on the same W (XLA's
-float64 sin is a scalar libm call). Compile time is measured on its own (lower +
+Per lane: order-K Taylor coefficients of the pendulum x' = v, v' = -sin(q0 + x), with
+the acceleration from lagrax's autodiff `_accelerations` of L = qdot^2/2 + cos q, at
+W = 256 and 4096 lanes, float64, one process. The baseline is `jnp.sin` on the same W
+(XLA's float64 sin is a scalar libm call). Compile time is measured on its own (lower +
 compile). Best of repeats; run on a quiet machine, timings on a shared one are noisy.
 
     python benchmarks/taylor_coefficients.py [--order 20]
