@@ -1584,10 +1584,8 @@ def _periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
     def local(q0, consts, rtol, atol, t_max, energy_tol):
         out = _device_periods(L, m, q0[0], consts, rtol, atol, t_max, energy_tol)
         T, status, steps, executed, est = out
-        gather = lambda x: jax.lax.all_gather(x, "lanes")
-        return (gather(T), gather(status), gather(steps), gather(est)), jax.lax.psum(
-            executed, "lanes"
-        )
+        lanes = tuple(jax.lax.all_gather(x, "lanes") for x in (T, status, steps, est))
+        return lanes, jax.lax.psum(executed, "lanes")
 
     (T, status, steps, est), executed = jax.shard_map(
         local,
