@@ -12,9 +12,9 @@ time-reversed outgoing leg, so $T = 2\,t(q_0 \to q_1)$: half the work. Nothing h
 assumes a centre of oscillation; the turning points are found wherever they are.
 
 `period` is the one-lane entry point: it checks its arguments, runs one lane of the
-batch kernel in `lagrax._sweep` (which holds the algorithm: legs, event location,
-error estimate, statuses) and turns a failed status into an error. Numerical choices
-(each one a measured trap):
+batch kernel (`lagrax._kernel`: the loop, its step, event location, raw statuses;
+`lagrax._sweep`: legs, error estimate, statuses) and turns a failed status into an
+error. Numerical choices (each one a measured trap):
 
 - Each lane is integrated in its own units, $x = (q - q_0)/|q_0|$ and $s = t/\tau$
   with $\tau = \sqrt{|q_0| / |\ddot q(q_0)|}$, so that `rtol`/`atol` mean the same
@@ -76,7 +76,7 @@ class _NoPeriodError(ValueError, RuntimeError):
 def _check_options(L, dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method):
     """The checks `period` and `sweep_periods` share, run once per call."""
     check_one_dof(L, dtype)
-    from ._sweep import stepper
+    from ._kernel import stepper
 
     check_instance(
         solver,
@@ -229,7 +229,8 @@ def period(
     rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    from ._sweep import one_lane, resolve_solver, stepper
+    from ._kernel import resolve_solver, stepper
+    from ._sweep import one_lane
 
     T, status, estimate = one_lane(
         L,

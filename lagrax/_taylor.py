@@ -549,7 +549,7 @@ class _Unrolled(_Store):
     ~1.3 µs for the `fori_loop` over `(K + 1, W)` arrays); stacking the K + 1
     coefficients as outputs instead makes XLA recompute the whole program once per
     output (~300 ns, 36 sines); the period kernel therefore passes the step's
-    outputs through one variadic reduction (`lagrax._sweep._one_fusion`).
+    outputs through one variadic reduction (`lagrax._fusion.one_fusion`).
     """
 
     def __init__(self, zero, lanes, coef):

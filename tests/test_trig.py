@@ -181,11 +181,11 @@ def test_a_default_sweep_beyond_the_range_fails_its_lanes():
 
 
 def test_the_controllers_root_is_accurate_and_the_same_in_every_lane():
-    # Dopri8's step-size factor inv ** (1/8) by three square roots (`_sweep._root`):
+    # Dopri8's step-size factor inv ** (1/8) by three square roots (`_kernel._root`):
     # within 2 ulp of the exact root, and the same bits whatever a value's position
     # in the array (vector body or scalar remainder of XLA's loop), which a sweep's
     # lanes rely on (results independent of chunk size).
-    from lagrax._sweep import _root
+    from lagrax._kernel import _root
 
     rng = np.random.default_rng(0)
     x = 10.0 ** rng.uniform(-12, 12, 37)
