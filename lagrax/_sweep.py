@@ -946,7 +946,11 @@ def sweep_periods(
     - `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in `period`
         (the same for every lane).
     - `chunk_size`: lanes stepping together per device (static: changing it compiles
-        anew).
+        anew). 256 suits a CPU core: on the pendulum (one core; 1024 to 65,536
+        amplitudes; the defaults, Taylor and Dopri8 "quarter") it was the fastest
+        of 128 to 2048 or within 7% of it. A GPU needs far more lanes in flight
+        (10^4 to 10^5 per device; `benchmarks/sweep.py --gpu` times 4096 and
+        65,536): not measured here, no GPU was available.
     - `error_estimate`: compute the per-lane error estimate (see above).
     - `sort`: run the lanes in order of decreasing |q0| (default True; the outputs
         stay in input order). The queue needs no sorted input to keep lanes busy,
