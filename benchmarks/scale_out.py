@@ -129,12 +129,26 @@ def run_config(processes, devices, args, tmp):
     procs = [
         subprocess.Popen(
             [
-                sys.executable, __file__, "--worker",
-                "--processes", str(processes), "--devices", str(devices),
-                "--process-id", str(i), "--port", str(port),
-                "--count", str(args.count), "--chunk-size", str(args.chunk_size),
-                "--repeats", str(args.repeats), "--periods", periods,
-            ],  # fmt: skip
+                sys.executable,
+                __file__,
+                "--worker",
+                "--processes",
+                str(processes),
+                "--devices",
+                str(devices),
+                "--process-id",
+                str(i),
+                "--port",
+                str(port),
+                "--count",
+                str(args.count),
+                "--chunk-size",
+                str(args.chunk_size),
+                "--repeats",
+                str(args.repeats),
+                "--periods",
+                periods,
+            ],
             env=env,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -202,9 +216,7 @@ def main():
             row["speedup"] = row["periods_per_s"] / base
             row["efficiency"] = row["speedup"] / row["devices"]
         same = np.array_equal(periods[(1, 2)], periods[(2, 1)], equal_nan=True)
-        vs_one = float(
-            np.nanmax(np.abs(periods[(2, 1)] / periods[(1, 1)] - 1))
-        )
+        vs_one = float(np.nanmax(np.abs(periods[(2, 1)] / periods[(1, 1)] - 1)))
     report = {
         "what": (
             f"{args.count} pendulum amplitudes 0.01-3.1 rad, sweep_periods "

@@ -200,7 +200,8 @@ def long_horizon(periods, samples=4000, only=None):
             row = _run_long(L, y0, solver, dt, tol, t1, ts, windows, invariants)
             rows[name] = row
             extra = (
-                f", max|dp_phi| {row['p_phi_error_max']:.2e}" if "p_phi" in invariants
+                f", max|dp_phi| {row['p_phi_error_max']:.2e}"
+                if "p_phi" in invariants
                 else ""
             )
             print(

@@ -7,8 +7,13 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax.systems import asymmetric_well, charged_particle, cycloid, driven_pendulum
-from lagrax.systems import pendulum
+from lagrax.systems import (
+    asymmetric_well,
+    charged_particle,
+    cycloid,
+    driven_pendulum,
+    pendulum,
+)
 
 
 def test_integer_arguments_are_promoted_where_harmless():

@@ -141,7 +141,8 @@ def test_sorted_lanes_return_in_input_order():
     q0 = jnp.asarray(q0)
     a = lagrax.sweep_periods(PENDULUM, q0, chunk_size=8)
     b = lagrax.sweep_periods(PENDULUM, q0, chunk_size=8, sort=False)
-    for x, y in [(a.periods, b.periods), (a.status, b.status), (a.num_steps, b.num_steps)]:
+    pairs = [(a.periods, b.periods), (a.status, b.status), (a.num_steps, b.num_steps)]
+    for x, y in pairs:
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     np.testing.assert_array_equal(
         np.asarray(a.error_estimate), np.asarray(b.error_estimate)

@@ -16,7 +16,8 @@ K = 20
 
 
 def _reference(accel, s, x, v, p, K=K):
-    """Normalized coefficients of (s, x, v) per lane by K calls of `jet`: (K + 1, 3, W)."""
+    """Normalized coefficients of (s, x, v) per lane by K calls of `jet`:
+    (K + 1, 3, W)."""
 
     def one(s, x, v, p):
         def f(y):
@@ -37,7 +38,8 @@ def _check(accel, s, x, v, p, rtol=1e-13, reference=None, K=K):
     xs, vs, as_ = jax.jit(taylor_coefficients(accel, K, jnp.float64))(s, x, v, p)
     assert xs.shape == vs.shape == (K + 1, x.shape[0])
     assert as_.shape == (K, x.shape[0])
-    # The bookkeeping of the docstring: v_{k+1} = a_k / (k + 1), x_{k+1} = v_k / (k + 1).
+    # The bookkeeping of the docstring:
+    # v_{k+1} = a_k / (k + 1), x_{k+1} = v_k / (k + 1).
     k1 = np.arange(1, K + 1)[:, None]
     np.testing.assert_allclose(vs[1:], as_ / k1, rtol=1e-15)
     np.testing.assert_allclose(xs[1:], vs[:-1] / k1, rtol=1e-15)
@@ -203,7 +205,13 @@ def test_polynomial_step_matches_diffrax():
         term = dfx.ODETerm(lambda t, y, args: jnp.stack([y[1], -jnp.sin(y[0])]))
         ctrl = dfx.PIDController(rtol=1e-14, atol=1e-14)
         sol = dfx.diffeqsolve(
-            term, dfx.Dopri8(), 0.0, h, 0.01, jnp.stack([q0, v0]), stepsize_controller=ctrl
+            term,
+            dfx.Dopri8(),
+            0.0,
+            h,
+            0.01,
+            jnp.stack([q0, v0]),
+            stepsize_controller=ctrl,
         )
         return sol.ys[0]
 
@@ -213,9 +221,8 @@ def test_polynomial_step_matches_diffrax():
 
 
 def test_order_one_and_constant_acceleration():
-    xs, vs, as_ = taylor_coefficients(lambda s, x, v: jnp.asarray(-9.8), 3, jnp.float64)(
-        jnp.zeros(2), jnp.array([1.0, 2.0]), jnp.array([0.5, 0.0])
-    )
+    coeffs = taylor_coefficients(lambda s, x, v: jnp.asarray(-9.8), 3, jnp.float64)
+    xs, vs, as_ = coeffs(jnp.zeros(2), jnp.array([1.0, 2.0]), jnp.array([0.5, 0.0]))
     np.testing.assert_allclose(xs[:, 0], [1.0, 0.5, -4.9, 0.0])
     np.testing.assert_allclose(as_[:, 1], [-9.8, 0.0, 0.0])
     xs, vs, as_ = taylor_coefficients(lambda s, x, v: -x, 1, jnp.float64)(
