@@ -60,7 +60,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import lagrax  # noqa: E402
-from lagrax._simulate import default_controller  # noqa: E402
+from lagrax._trajectory.simulate import default_controller  # noqa: E402
 from lagrax.systems import cycloid, double_pendulum, pendulum  # noqa: E402
 
 
@@ -176,7 +176,7 @@ def chain_hand(N, m=1.0, l=1.0, g=1.0):
     $f_i = -l^2\sum_j S_{\max(i,j)}\sin(\theta_i - \theta_j)\dot\theta_j^2
     - g l S_i \sin\theta_i$, with $S_k = m(N - k)$ the mass at and below bob k
     (0-based), and $\cos, \sin(\theta_i-\theta_j)$ from the N sines and cosines."""
-    from lagrax._mechanics import _solve_definite
+    from lagrax._eom.mechanics import _solve_definite
 
     S = m * (N - jnp.arange(N))
     Smax = jnp.minimum(S[:, None], S[None, :])
@@ -197,7 +197,7 @@ def fuse_toggled(L, n):
     """lagrax's vector field with `one_fusion` toggled against its default for n
     coordinates (off for n == 2: the code before the fusion; on for n == 1, where
     the default leaves it off), or None for n > 2 (no fusion there)."""
-    from lagrax._mechanics import _accelerations
+    from lagrax._eom.mechanics import _accelerations
 
     if n > 2:
         return None, None
@@ -443,7 +443,7 @@ def check_accuracy(system, y0, count=64):
 def unfused_accelerations(L):
     """lagrax's accelerations before round three: the same forward-over-reverse
     derivatives and solve, evaluated as array operations (not entry by entry)."""
-    from lagrax._mechanics import _lagrange_terms, _solve_definite
+    from lagrax._eom.mechanics import _lagrange_terms, _solve_definite
 
     def acc(q, qdot):
         M, rhs = _lagrange_terms(L, q, qdot, jnp.zeros((), q.dtype))

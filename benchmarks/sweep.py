@@ -231,8 +231,8 @@ def work_jax(args):
     import optimistix as optx
 
     import lagrax
-    from lagrax._mechanics import _accelerations
-    from lagrax._trig import vectorized_trig
+    from lagrax._eom.mechanics import _accelerations
+    from lagrax._jaxpr.trig import vectorized_trig
     from lagrax.systems import pendulum
 
     a_np = _amplitudes(args.n)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax import _cli
+from lagrax._cli import main as _cli
 from lagrax.systems import pendulum
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax import _cli
+from lagrax._cli import main as _cli
 
 
 def run(capsys, *argv):

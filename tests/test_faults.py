@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 import lagrax
-import lagrax._period
-from lagrax import _cli
+import lagrax._period.period
+from lagrax._cli import main as _cli
 from lagrax._results import (
     MAX_STEPS,
     NONFINITE_INPUT,
@@ -272,7 +272,7 @@ def slow(*args, **kwargs):
     time.sleep(0.5)  # time for the test to kill us between two blocks
     return real(*args, **kwargs)
 p.sweep_periods = slow
-from lagrax._cli import main
+from lagrax._cli.main import main
 sys.exit(main(sys.argv[1:]))
 """
 

@@ -230,8 +230,8 @@ def test_particle_double_pendulum_matches_hand_derivation(key):
 
 @pytest.mark.parametrize("n", [1, 2])
 def test_scalarized_equals_array_evaluation(key, n):
-    from lagrax._mechanics import _accelerations, _lagrange_terms, _solve_definite
-    from lagrax._scalarize import _cost
+    from lagrax._eom.mechanics import _accelerations, _lagrange_terms, _solve_definite
+    from lagrax._jaxpr.scalarize import _cost
 
     def L(q, qdot, t):  # cumsum, stack, dot, pad, broadcasts, explicit t
         v = jnp.cumsum(jnp.stack([qdot * jnp.cos(q), qdot * jnp.sin(q)], -1), 0)
@@ -258,7 +258,7 @@ def test_scalarized_equals_array_evaluation(key, n):
 
 
 def test_scalarize_falls_back_on_unsupported_primitives():
-    from lagrax._scalarize import _cost, scalarized
+    from lagrax._jaxpr.scalarize import _cost, scalarized
 
     def f(x):  # lax.cond and a custom_jvp: not evaluated entry by entry
         y = jax.lax.cond(x[0] > 0, jnp.sin, jnp.cos, x)
@@ -270,7 +270,7 @@ def test_scalarize_falls_back_on_unsupported_primitives():
 
 
 def test_scalarize_structural_primitives(key):
-    from lagrax._scalarize import scalarized
+    from lagrax._jaxpr.scalarize import scalarized
 
     def f(x, y):
         a = jnp.cumsum(x) * jnp.cumsum(y[::-1])[::-1]
@@ -296,7 +296,7 @@ def test_fused_accelerations_identical(key, n):
     # values to round-off (XLA may contract or reorder differently inside the one
     # loop) under jit/vmap, NaN lanes (a singular M) kept, and the same derivatives
     # (its JVP is the identity) forward and reverse.
-    from lagrax._mechanics import _accelerations
+    from lagrax._eom.mechanics import _accelerations
 
     def L(q, qdot, t):  # M proportional to q_0^2: singular where q_0 = 0
         v = jnp.cumsum(jnp.stack([qdot * jnp.cos(q), qdot * jnp.sin(q)], -1), 0)
@@ -332,7 +332,7 @@ def test_fused_accelerations_identical(key, n):
 
 
 def test_one_fusion_is_the_identity():
-    from lagrax._fusion import one_fusion
+    from lagrax._jaxpr.fusion import one_fusion
 
     values = dict(
         x=jnp.array([0.0, -0.0, 1.5, jnp.inf, -jnp.inf, jnp.nan]),
@@ -352,7 +352,7 @@ def test_scalarize_folds_constants_as_xla_does():
     """Known scalars are folded by NumPy for the correctly rounded operations (no XLA
     compile per operation): bit for bit what XLA's own evaluation gives, including
     infinities, NaN, signed zeros and subnormals; others are left to XLA (None)."""
-    from lagrax._scalarize import _fold_exact
+    from lagrax._jaxpr.scalarize import _fold_exact
 
     lax = jax.lax
     floats = [0.0, -0.0, 1.0, -2.5, 1e-310, 3.0e300, np.inf, -np.inf, np.nan, 0.1]

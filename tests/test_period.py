@@ -78,7 +78,7 @@ def test_cycloid_theta_near_cusp_is_a_status_not_a_number():
     res = lagrax.sweep_periods(CYCLOID_THETA, theta0, max_steps=2048)
     status = np.asarray(res.status)
     # At the cusp the mass matrix is exactly singular.
-    assert status[0] == lagrax._period.SINGULAR_MASS
+    assert status[0] == lagrax._period.period.SINGULAR_MASS
     # Closer than float64 can turn around: a failure, never a number.
     assert np.all(status[1:3] != 0)
     assert np.all(np.isnan(np.asarray(res.periods[:3])))
@@ -149,7 +149,7 @@ def test_sorted_lanes_return_in_input_order():
     )
     ok = np.asarray(q0) != 0
     assert np.all(np.asarray(a.status)[ok] == 0)
-    assert np.asarray(a.status)[~ok][0] == lagrax._period.NOT_OSCILLATING
+    assert np.asarray(a.status)[~ok][0] == lagrax._period.period.NOT_OSCILLATING
     exact = lagrax.systems.pendulum.period(q0[ok], r=1.0, g=1.0)
     np.testing.assert_allclose(np.asarray(a.periods)[ok], exact, rtol=1e-12)
 
@@ -158,8 +158,8 @@ def test_status_codes_at_release():
     q0 = jnp.array([0.0, jnp.nan, 1.0, 0.5])
     res = lagrax.sweep_periods(PENDULUM, q0, method="quarter")
     assert list(np.asarray(res.status)) == [
-        lagrax._period.NOT_OSCILLATING,  # released at the equilibrium
-        lagrax._period.NONFINITE_INPUT,
+        lagrax._period.period.NOT_OSCILLATING,  # released at the equilibrium
+        lagrax._period.period.NONFINITE_INPUT,
         0,
         0,
     ]
@@ -170,7 +170,7 @@ def test_status_codes_at_release():
 def test_status_codes_along_the_way():
     inverted = lambda q, qdot, t: 0.5 * qdot[0] ** 2 + 0.5 * q[0] ** 2
     res = lagrax.sweep_periods(inverted, jnp.array([1.0, 0.5]))
-    assert list(np.asarray(res.status)) == [lagrax._period.NOT_OSCILLATING] * 2
+    assert list(np.asarray(res.status)) == [lagrax._period.period.NOT_OSCILLATING] * 2
     few = lagrax.sweep_periods(PENDULUM, jnp.array([1.0, 2.0]), max_steps=2)
     assert np.all(np.asarray(few.status) == lagrax._results.MAX_STEPS)
     assert np.all(np.isnan(np.asarray(few.periods)))

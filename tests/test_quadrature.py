@@ -5,7 +5,7 @@ import pytest
 import scipy.integrate
 
 import lagrax
-from lagrax._quadrature import (
+from lagrax._period.quadrature import (
     EQUILIBRIUM,
     ESCAPES,
     NOT_NATURAL,

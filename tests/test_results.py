@@ -43,8 +43,9 @@ def test_int_view_is_fixed():
         assert bool(back == member)
         assert lagrax.status_message(code) == lagrax.RESULTS[member]
     # The old per-module names are the same codes.
-    assert lagrax._period.SINGULAR_MASS == lagrax._quadrature.SINGULAR_MASS == 3
-    assert lagrax._quadrature.EQUILIBRIUM == lagrax._period.NOT_OSCILLATING
+    period, quadrature = lagrax._period.period, lagrax._period.quadrature
+    assert period.SINGULAR_MASS == quadrature.SINGULAR_MASS == 3
+    assert quadrature.EQUILIBRIUM == period.NOT_OSCILLATING
 
 
 def test_messages():

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from jax.experimental import jet
 
-from lagrax._mechanics import _accelerations
-from lagrax._taylor import taylor_coefficients
+from lagrax._eom.mechanics import _accelerations
+from lagrax._taylor.coefficients import taylor_coefficients
 from lagrax.systems import asymmetric_well, cycloid, driven_pendulum
 
 

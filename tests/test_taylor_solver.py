@@ -46,7 +46,7 @@ def test_events_are_located_inside_the_crossing_step(monkeypatch):
     fast = _sweep(PENDULUM, q0, **kw)
     steps = np.asarray(fast.num_steps)
     assert steps.mean() < 6.0, steps.mean()
-    import lagrax._kernel as kernel_module
+    import lagrax._period.kernel as kernel_module
 
     monkeypatch.setattr(kernel_module, "_ROOT_LOW_ITERS", 0)
     monkeypatch.setattr(kernel_module, "_ROOT_FULL_ITERS", 0)

@@ -1,5 +1,6 @@
-"""The vectorized float64 sine and cosine of `lagrax._trig` (used by the sweep kernel)
-against mpmath at 200 bits and against the C library."""
+"""The vectorized float64 sine and cosine of
+`lagrax._jaxpr.trig` (used by the sweep kernel) against mpmath at 200 bits and
+against the C library."""
 
 import jax
 import jax.numpy as jnp
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given, strategies as st
 
-from lagrax._trig import _RANGE, sincos, vectorized_trig
+from lagrax._jaxpr.trig import _RANGE, sincos, vectorized_trig
 
 
 mpmath.mp.prec = 200
@@ -185,7 +186,7 @@ def test_the_controllers_root_is_accurate_and_the_same_in_every_lane():
     # within 2 ulp of the exact root, and the same bits whatever a value's position
     # in the array (vector body or scalar remainder of XLA's loop), which a sweep's
     # lanes rely on (results independent of chunk size).
-    from lagrax._kernel import _root
+    from lagrax._period.kernel import _root
 
     rng = np.random.default_rng(0)
     x = 10.0 ** rng.uniform(-12, 12, 37)

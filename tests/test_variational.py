@@ -9,7 +9,7 @@ import optimistix as optx
 import pytest
 
 import lagrax
-from lagrax._variational import _discrete_momenta
+from lagrax._trajectory.variational import _discrete_momenta
 from lagrax.systems.pendulum import pendulum_period
 
 from .helpers import tree_allclose

@@ -15,7 +15,7 @@ so $\ddot\theta = -(g/l)\sin\theta - (b/m)\dot\theta - (cl/m)|\dot\theta|\dot\th
 
 import jax.numpy as jnp
 
-from .._particles import dissipation_force, generalized_force, particle_lagrangian
+from .._eom.particles import dissipation_force, generalized_force, particle_lagrangian
 
 
 def positions(*, l=1.0):

@@ -12,7 +12,7 @@ have the two normal-mode frequencies of `normal_mode_frequencies`.
 
 import jax.numpy as jnp
 
-from .._particles import particle_lagrangian
+from .._eom.particles import particle_lagrangian
 
 
 def positions(*, l1=1.0, l2=1.0):

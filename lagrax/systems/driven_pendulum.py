@@ -12,7 +12,7 @@ inverted position is stable (Kapitza's pendulum).
 
 import jax.numpy as jnp
 
-from .._particles import particle_lagrangian
+from .._eom.particles import particle_lagrangian
 
 
 def positions(*, l=1.0, ax=0.0, ay=0.0, omega=1.0):

@@ -13,7 +13,7 @@ $\cos\theta^* = g/(R\Omega^2)$.
 
 import jax.numpy as jnp
 
-from .._particles import particle_lagrangian
+from .._eom.particles import particle_lagrangian
 
 
 def positions(*, R=1.0, Omega=1.0):

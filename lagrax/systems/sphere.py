@@ -15,7 +15,7 @@ $L = \frac12 m\rho^2\dot\phi^2$ (constant height, so gravity does no work).
 
 import jax.numpy as jnp
 
-from .._particles import particle_lagrangian
+from .._eom.particles import particle_lagrangian
 
 
 def positions(*, R=1.0):

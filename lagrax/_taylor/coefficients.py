@@ -47,8 +47,8 @@ import numpy as np
 from jax import lax
 from jax.extend import core as jex_core
 
-from . import _trig
-from ._fusion import fusion_off
+from .._jaxpr import trig as _trig
+from .._jaxpr.fusion import fusion_off
 
 
 __all__ = ["Taylor", "taylor_coefficients"]
@@ -549,7 +549,7 @@ class _Unrolled(_Store):
     ~1.3 µs for the `fori_loop` over `(K + 1, W)` arrays); stacking the K + 1
     coefficients as outputs instead makes XLA recompute the whole program once per
     output (~300 ns, 36 sines); the period kernel therefore passes the step's
-    outputs through one variadic reduction (`lagrax._fusion.one_fusion`).
+    outputs through one variadic reduction (`lagrax._jaxpr.fusion.one_fusion`).
     """
 
     def __init__(self, zero, lanes, coef):
@@ -1011,7 +1011,7 @@ def taylor_coefficients(
         same program: see `_Unrolled`) instead of stacked arrays from a loop; a
         program of more than `_UNROLL_BUDGET` equations is computed by the loop
         anyway (the same values, stacked).
-    - `vectorized_trig`: order 0's float64 sines and cosines by `lagrax._trig.sincos`
+    - `vectorized_trig`: order 0's float64 sines and cosines by `sincos`
         (vectorized by XLA, within 1 ulp, NaN beyond $|x| = 2^{19}\pi/2$) instead of
         the C library's (one scalar call per element on a CPU).
 

@@ -19,10 +19,10 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from ._checks import check_solvable, prepare as _prepare
-from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
-from ._fusion import one_fusion
-from ._scalarize import scalarized
+from .._checks import check_solvable, prepare as _prepare
+from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
+from .._jaxpr.fusion import one_fusion
+from .._jaxpr.scalarize import scalarized
 
 
 def _lagrange_terms(L, q, qdot, t):

@@ -1,5 +1,5 @@
 r"""`sweep_periods`: the period methods ("matched", "half", "full", "quarter") over
-the batch kernel (`lagrax._kernel`: one compiled loop per device, its step, its queue
+the batch kernel (`kernel.py`: one compiled loop per device, its step, its queue
 and event location), the far turning point, the error estimate, sharding over
 devices, and autodiff.
 
@@ -38,21 +38,11 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array, Float, Int
 
-from ._checks import as_real_array, check_callable, check_devices, positive_int
-from ._fusion import one_fusion
-from ._kernel import (
-    _Pass,
-    _pass,
-    _Tableau,
-    MAX_SPEED,
-    POSITION,
-    resolve_solver,
-    stepper,
-    TURNING,
-)
-from ._mechanics import _accelerations
-from ._period import _check_options
-from ._results import (
+from .._checks import as_real_array, check_callable, check_devices, positive_int
+from .._eom.mechanics import _accelerations
+from .._jaxpr.fusion import one_fusion
+from .._jaxpr.trig import vectorized_trig
+from .._results import (
     COORDINATE_SINGULARITY,
     ENERGY_DRIFT,
     NONFINITE_INPUT,
@@ -65,8 +55,18 @@ from ._results import (
     SUCCESS,
     TOLERANCE_NOT_MET,
 )
-from ._taylor import Taylor
-from ._trig import vectorized_trig
+from .._taylor.coefficients import Taylor
+from .kernel import (
+    _Pass,
+    _pass,
+    _Tableau,
+    MAX_SPEED,
+    POSITION,
+    resolve_solver,
+    stepper,
+    TURNING,
+)
+from .period import _check_options
 
 
 # Safeguarded Newton for the far turning point converges in ~5 iterations from the
@@ -893,12 +893,12 @@ def sweep_periods(
     Runge–Kutta pair), that solver's step written out stage by stage from its diffrax
     tableau, with diffrax's step-size rule; `SweepResult.solver` says which. Events
     are located by re-stepping with the step length as the unknown (module docstring
-    of `lagrax._kernel`).
+    of `lagrax._period.kernel`).
     Amplitudes and tolerances are arrays: changing them never recompiles.
 
     Each period comes with an error estimate (`error_estimate=True`, the default).
     With the default method and a Taylor step it comes from the solve itself: a
-    first-order bound (`lagrax._sweep._screen`) that carries each step's error bound
+    first-order bound that carries each step's error bound
     (truncation and rounding) to the period, as a time shift along the orbit and an
     energy error times its leverage on the rest of the leg, $\int dt/(M\dot q^2)$,
     plus the far turning point's rounding band times $d\tau/dE$ (a finite-part

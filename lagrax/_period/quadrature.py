@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._checks import (
+from .._checks import (
     as_real_array,
     check_finite,
     check_one_dof,
@@ -34,8 +34,8 @@ from ._checks import (
     positive_int,
     positive_scalar,
 )
-from ._custom_types import Lagrangian
-from ._results import (
+from .._custom_types import Lagrangian
+from .._results import (
     error_if,
     ESCAPES,
     first_of,

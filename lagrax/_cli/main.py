@@ -432,7 +432,7 @@ class _Target:
 def _builtin_names():
     import pkgutil
 
-    from . import systems
+    from .. import systems
 
     return sorted(
         m.name for m in pkgutil.iter_modules(systems.__path__) if m.name[0] != "_"

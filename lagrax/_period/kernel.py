@@ -16,8 +16,8 @@ ceiling).
 
 With `solver=lagrax.Taylor()` the step is a Taylor expansion of order K instead
 (`_taylor_step`): coefficients by recurrence from the acceleration's jaxpr
-(`lagrax._taylor`), written out order by order, the step length chosen from the last
-coefficients before the step is taken (never rejected), and the step's outputs
+(`taylor_coefficients`), written out order by order, the step length chosen from
+the last coefficients before the step is taken (never rejected), and the step's outputs
 forced into ONE fused loop over the lanes (`one_fusion`): XLA on a CPU otherwise
 duplicates the shared recurrence into each consumer. Measured on the pendulum (one
 core, rtol 1e-14): ~5 lane-steps per quarter period against ~26 for Dopri8, at
@@ -55,7 +55,7 @@ fallback where that correction is not below round-off. Measured on the pendulum
 With the error estimate (`_Pass.screen`), each step also adds its terms of the
 first-order error bound to per-lane sums carried in the loop (`_screen_terms`); the
 bound itself, the methods' legs and rounds, and sharding over devices are in
-`lagrax._sweep`.
+`lagrax._period.sweep`.
 """
 
 import functools
@@ -67,9 +67,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._fusion import one_fusion
-from ._mechanics import _accelerations, _jacobi
-from ._results import (
+from .._eom.mechanics import _accelerations, _jacobi
+from .._jaxpr.fusion import one_fusion
+from .._jaxpr.trig import vectorized_trig
+from .._results import (
     ENERGY_DRIFT,
     MAX_STEPS as S_MAX_STEPS,
     NONFINITE_INPUT,
@@ -79,8 +80,7 @@ from ._results import (
     SOLVER_FAILED,
     SUCCESS,
 )
-from ._taylor import Taylor, taylor_coefficients
-from ._trig import vectorized_trig
+from .._taylor.coefficients import Taylor, taylor_coefficients
 
 
 # Raw outcomes of the loop, refined into statuses by the post-pass.
@@ -1033,7 +1033,7 @@ def _finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
     # reader: with `_lane_scales`'s, the compiled default sweep has 7 calls of the C
     # library's sine or cosine per lane and pass instead of 11, and 174 kernels to
     # compile instead of 185; ~2% faster (pendulum, 4096 amplitudes, one core, three
-    # alternated pairs; `lagrax._trig`'s sines here instead were slower, more code
+    # alternated pairs; `lagrax._jaxpr.trig`'s sines here instead were slower, more code
     # per copy).
     both = one_fusion(dict(enumerate(ends + terms)))
     ends = tuple(both[i] for i in range(len(ends)))

@@ -17,9 +17,9 @@ import lineax as lx
 import optimistix as optx
 from diffrax._term import WrapTerm  # not public; diffeqsolve wraps every term in it
 
-from ._checks import describe
-from ._mechanics import _momenta
-from ._term import LagrangianTerm
+from .._checks import describe
+from .._eom.mechanics import _momenta
+from .term import LagrangianTerm
 
 
 def _unwrap(

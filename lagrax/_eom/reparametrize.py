@@ -5,8 +5,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from ._checks import call_user, check_callable, describe
-from ._custom_types import Coordinates, Lagrangian, RealScalarLike
+from .._checks import call_user, check_callable, describe
+from .._custom_types import Coordinates, Lagrangian, RealScalarLike
 
 
 def _check_phi(phi, u, t):

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import (
+from .._checks import (
     as_real_array,
     as_time,
     call_user as _call_user,
@@ -30,7 +30,7 @@ from ._checks import (
     is_concrete,
     positive_scalar,
 )
-from ._custom_types import GeneralizedForce, Lagrangian
+from .._custom_types import GeneralizedForce, Lagrangian
 
 
 Positions = Callable[[jax.Array, jax.Array], jax.Array]

@@ -3,9 +3,9 @@
 import diffrax as dfx
 import equinox as eqx
 
-from ._checks import check_callable
-from ._custom_types import GeneralizedForce, Lagrangian
-from ._mechanics import _accelerations
+from .._checks import check_callable
+from .._custom_types import GeneralizedForce, Lagrangian
+from .._eom.mechanics import _accelerations
 
 
 class _LagrangeVectorField(eqx.Module):

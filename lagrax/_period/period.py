@@ -12,8 +12,8 @@ time-reversed outgoing leg, so $T = 2\,t(q_0 \to q_1)$: half the work. Nothing h
 assumes a centre of oscillation; the turning points are found wherever they are.
 
 `period` is the one-lane entry point: it checks its arguments, runs one lane of the
-batch kernel (`lagrax._kernel`: the loop, its step, event location, raw statuses;
-`lagrax._sweep`: legs, error estimate, statuses) and turns a failed status into an
+batch kernel (`kernel.py`: the loop, its step, event location, raw statuses;
+`sweep.py`: legs, error estimate, statuses) and turns a failed status into an
 error. Numerical choices (each one a measured trap):
 
 - Each lane is integrated in its own units, $x = (q - q_0)/|q_0|$ and $s = t/\tau$
@@ -34,7 +34,7 @@ import diffrax as dfx
 import equinox as eqx
 from jaxtyping import Array
 
-from ._checks import (
+from .._checks import (
     as_real_array,
     check_choice,
     check_finite,
@@ -46,8 +46,8 @@ from ._checks import (
     positive_scalar,
     tolerances,
 )
-from ._custom_types import Lagrangian, RealScalarLike
-from ._results import (
+from .._custom_types import Lagrangian, RealScalarLike
+from .._results import (
     NONFINITE_INPUT,
     NOT_OSCILLATING,
     SINGULAR_MASS,
@@ -56,7 +56,7 @@ from ._results import (
     status_result,
     SUCCESS,
 )
-from ._taylor import Taylor
+from .._taylor.coefficients import Taylor
 
 
 _METHODS = ("matched", "half", "full", "quarter")
@@ -76,7 +76,7 @@ class _NoPeriodError(ValueError, RuntimeError):
 def _check_options(L, dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method):
     """The checks `period` and `sweep_periods` share, run once per call."""
     check_one_dof(L, dtype)
-    from ._kernel import stepper
+    from .kernel import stepper
 
     check_instance(
         solver,
@@ -229,8 +229,8 @@ def period(
     rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    from ._kernel import resolve_solver, stepper
-    from ._sweep import one_lane
+    from .kernel import resolve_solver, stepper
+    from .sweep import one_lane
 
     T, status, estimate = one_lane(
         L,

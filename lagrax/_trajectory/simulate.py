@@ -7,7 +7,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import (
+from .._checks import (
     as_time,
     check_callable,
     check_finite,
@@ -18,9 +18,9 @@ from ._checks import (
     prepare,
     tolerances,
 )
-from ._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
-from ._mechanics import _accelerations_jit
-from ._term import _LagrangeVectorField, LagrangianTerm
+from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
+from .._eom.mechanics import _accelerations_jit
+from .term import _LagrangeVectorField, LagrangianTerm
 
 
 def vector_field(

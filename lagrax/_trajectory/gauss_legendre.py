@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._variational import (
+from .variational import (
     _momenta,
     _newton_scales,
     _promote,
