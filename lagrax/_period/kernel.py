@@ -80,7 +80,8 @@ from .._results import (
     SOLVER_FAILED,
     SUCCESS,
 )
-from .._taylor.coefficients import Taylor, taylor_coefficients
+from .._taylor.program import taylor_coefficients
+from .._taylor.solver import Taylor
 
 
 # Raw outcomes of the loop, refined into statuses by the post-pass.

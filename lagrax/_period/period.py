@@ -56,7 +56,7 @@ from .._results import (
     status_result,
     SUCCESS,
 )
-from .._taylor.coefficients import Taylor
+from .._taylor.solver import Taylor
 
 
 _METHODS = ("matched", "half", "full", "quarter")

@@ -55,7 +55,7 @@ from .._results import (
     SUCCESS,
     TOLERANCE_NOT_MET,
 )
-from .._taylor.coefficients import Taylor
+from .._taylor.solver import Taylor
 from .kernel import (
     _Pass,
     _pass,
