@@ -1,8 +1,6 @@
 r"""The coefficient program: a jaxpr flattened once, evaluated at order 0, then
 order by order with the recurrences of `recurrences.py`.
 
-Design, measured (`benchmarks/taylor_coefficients.py`):
-
 - The jaxpr is traced once at scalar inputs, nested calls (`jit`, `custom_jvp_call`,
     ...) are inlined, duplicate equations merged (an autodiff jaxpr computes `sin q`
     once per tangent direction) and dead ones dropped.
@@ -11,12 +9,16 @@ Design, measured (`benchmarks/taylor_coefficients.py`):
     evaluated once, at order 0, and multiplies series in $O(K)$. Outputs of
     zero-derivative primitives (`sign`, `floor`, comparisons, `is_finite`) and the
     branch of `select_n`, `max`, `abs` are decided on the order-0 coefficient.
-- Orders 1..K-1 run in one `lax.fori_loop` over fixed-shape `(K + 1, W)` coefficient
-    arrays; each Cauchy sum is a full-length product with a reversed, shifted copy
-    (`_Store`), so half its multiply-adds hit zeros. Unrolling the orders in Python
-    instead (exactly triangular sums, one `(W,)` array per coefficient) compiled in
-    5-8 s at order 20 against ~0.6 s, and did not run faster (both measured on a
-    loaded 2-core machine).
+- Orders 1..K-1 come one of two ways. With `unrolled=True` (the period kernel's
+    default), as one straight-line program (`_Unrolled`: exactly triangular sums, one
+    `(W,)` array per coefficient), which XLA fuses with the polynomials' evaluation
+    into a few loops over the lanes; it compiles longer, so a program of more than
+    `_UNROLL_BUDGET` equations takes the other way. Otherwise, in one `lax.fori_loop`
+    over fixed-shape `(K + 1, W)` coefficient arrays (`_Store`): each Cauchy sum is a
+    full-length product with a reversed, shifted copy, so half its multiply-adds hit
+    zeros, but the program's size does not grow with $K$.
+
+`benchmarks/taylor_coefficients.py` measures both.
 """
 
 from collections.abc import Callable
@@ -25,9 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.extend import core as jex_core
 
-from .._jaxpr import trig as _trig
+from .._jaxpr import interpreter, trig as _trig
 from .._jaxpr.fusion import fusion_off
 from .recurrences import (
     _add,
@@ -43,17 +44,15 @@ from .recurrences import (
 
 __all__ = ["taylor_coefficients"]
 
-# them, as the kernel's derivative goes through its calls).
-_CALLS = {
-    **_trig.CALLS,
-    "custom_jvp_call": "call_jaxpr",
-    "custom_vjp_call": "call_jaxpr",
-    "custom_vjp_call_jaxpr": "fun_jaxpr",
-}
-
 
 def _supported():
-    return sorted(_PIECEWISE_CONSTANT | _LINEAR | _BILINEAR | _NONLINEAR | set(_CALLS))
+    return sorted(
+        _PIECEWISE_CONSTANT
+        | _LINEAR
+        | _BILINEAR
+        | _NONLINEAR
+        | set(interpreter.supported_calls(custom=True))
+    )
 
 
 class _Node:
@@ -117,33 +116,15 @@ class _Program:
         return i
 
     def _inline(self, jaxpr, consts, ins):
-        env = {}
-        for var, c in zip(jaxpr.constvars, consts):
-            env[var] = self._const(c, var.aval)
-        for var, i in zip(jaxpr.invars, ins):
-            env[var] = i
-
-        def read(a):
-            if isinstance(a, jex_core.Literal):
-                return self._const(a.val, a.aval)
-            return env[a]
-
-        for eqn in jaxpr.eqns:
-            args = [read(a) for a in eqn.invars]
-            name = eqn.primitive.name
-            if name in _CALLS and _CALLS[name] in eqn.params:
-                sub = eqn.params[_CALLS[name]]
-                if isinstance(sub, jex_core.ClosedJaxpr):
-                    sub_jaxpr, sub_consts = sub.jaxpr, sub.consts
-                else:
-                    sub_jaxpr, sub_consts = sub, ()
-                n_args = len(sub_jaxpr.invars)
-                outs = self._inline(sub_jaxpr, sub_consts, args[len(args) - n_args :])
-            else:
-                outs = self._emit(eqn.primitive, args, eqn.params, eqn.outvars)
-            for var, o in zip(eqn.outvars, outs):
-                env[var] = o
-        return [read(a) for a in jaxpr.outvars]
+        # Custom-derivative calls inlined too: the recurrences need the primal only.
+        return interpreter.evaluate(
+            jaxpr,
+            consts,
+            ins,
+            lambda eqn, args: self._emit(eqn.primitive, args, eqn.params, eqn.outvars),
+            const=self._const,
+            custom=True,
+        )
 
     def _is_series(self, name, args, outvars):
         if not any(a in self.series for a in args):
@@ -401,13 +382,10 @@ class _Unrolled(_Store):
     orders computed so far.
 
     All orders of one step then trace into one straight-line program that XLA fuses
-    into a few loops over the lanes, with nothing stored between orders. Measured on
-    the pendulum at order 20, 4096 lanes, one core: ~48 ns per lane for all orders
-    and the polynomial's evaluation when they reach XLA as ONE output (against
-    ~1.3 µs for the `fori_loop` over `(K + 1, W)` arrays); stacking the K + 1
-    coefficients as outputs instead makes XLA recompute the whole program once per
-    output (~300 ns, 36 sines); the period kernel therefore passes the step's
-    outputs through one variadic reduction (`lagrax._jaxpr.fusion.one_fusion`).
+    into a few loops over the lanes, with nothing stored between orders, when it
+    reaches XLA as one output: with the K + 1 coefficients as separate outputs, XLA
+    recomputes the whole program once per output. The period kernel therefore
+    passes the step's outputs through one variadic reduction (`fusion.one_fusion`).
     """
 
     triangular = True  # exactly triangular sums, `pairs` below
@@ -550,9 +528,10 @@ def _coefficients(prog, K, s, x, v, leaves, trig=False):
 
 
 # The straight-line program's size beyond which `unrolled=True` falls back to the loop
-# over orders. Measured (1 core): the pendulum's order-20 program has 942 equations
-# and compiles with the kernel in ~4 s; the θ-form cycloid's has 5028 and the kernel
-# had not compiled after 300 s (XLA duplicates it into each consumer fusion).
+# over orders: XLA duplicates the program into each fusion that consumes it, so its
+# compile time grows much faster than its size (the pendulum's order-20 program is
+# under a thousand equations; the θ-form cycloid's, over five thousand, does not
+# compile in reasonable time).
 _UNROLL_BUDGET = 2000
 
 
@@ -647,9 +626,8 @@ def taylor_coefficients(
         prog = _Program(closed, len(leaves))
         if unrolled:
             # Traced once: counted against the budget, then called as it is (a
-            # `jit` call, which XLA inlines: re-binding its thousands of equations
-            # into the caller's trace took ~0.08 s of the default sweep's first-call
-            # tracing, 0.68-0.71 -> 0.60-0.61 s, one core, measured).
+            # `jit` call, which XLA inlines), sparing the caller's trace a re-bind
+            # of its thousands of equations.
             build = jax.jit(
                 lambda *a: _unrolled_coefficients(
                     prog, K, *a[:3], list(a[3:]), vectorized_trig

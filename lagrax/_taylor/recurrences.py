@@ -14,10 +14,13 @@ so all $K$ orders cost $O(K^2)$ multiply-adds per nonlinear node and one
 transcendental call per node, for order 0. `jax.experimental.jet` called $K$ times
 would redo every lower order each time: $O(K^3)$.
 
-Why this is worth doing: on CPU, XLA's float64 `sin` is a scalar libm call (~8 ns per
-element) while a multiply-add vectorizes (~0.2 ns), so an order-20 Taylor step costs
-about as much as a few sines, against 13 sines for one step of an 8th-order
-Runge–Kutta method.
+Why this is worth doing: on CPU, XLA's float64 `sin` is a scalar libm call per
+element while multiply-adds vectorize, so an order-20 Taylor step costs about as much
+as a few sines, against 13 sines for one step of an 8th-order Runge–Kutta method.
+
+Each rule below, `rule(store, node) -> [coefficients]`, gives the $k$-th coefficient
+($k \geq 1$) of a series node's outputs from the store of lower ones; `None` stands
+for an exact zero.
 """
 
 import jax
@@ -96,8 +99,6 @@ _ELEMENTWISE = frozenset(
     {"add", "add_any", "sub", "mul", "div", "max", "min", "pow", "rem", "clamp"}
 )
 
-# Call-like primitives whose (primal) body is inlined: `_trig.CALLS`, and here the
-# custom derivatives too (the recurrences need the primal only; `_trig` must keep
 # Elementwise nonlinear primitives with a recurrence below (plus mul/dot_general/div).
 _NONLINEAR = frozenset(
     {

@@ -17,9 +17,9 @@ __all__ = ["Taylor"]
 class Taylor(eqx.Module):
     r"""A Taylor integrator (heyoka's method) for `period` and `sweep_periods`.
 
-    Each step expands the trajectory to order $K$ about the current state with the
-    coefficients of `taylor_coefficients` (recurrences from the acceleration's jaxpr,
-    one transcendental call per node per step), takes the step length from the last
+    Each step expands the trajectory to order $K$ about the current state (its Taylor
+    coefficients by recurrences from the acceleration's jaxpr, one transcendental
+    call per node per step), takes the step length from the last
     coefficients (Jorba and Zou's rule, as heyoka.py does, but over the last four
     orders instead of two: from rest the odd coefficients vanish and two orders can
     rest on one coefficient passing through zero):
@@ -31,22 +31,23 @@ class Taylor(eqx.Module):
     (never longer than `max_step` in the lane's units of time, a fraction of its
     small-amplitude period, so that no event can be stepped over), and evaluates the
     polynomials at $h$. Nothing is rejected: the step is chosen before it is taken.
-    Events are located by re-evaluating the step from the same base with Newton or
-    a secant on the step length, as for Runge–Kutta solvers.
+    The polynomials are the solution over the whole step, so an event (a turning
+    point) is located inside the step that crosses it, as the root of the event
+    function's polynomial with one Newton correction by the exact event value;
+    where that correction does not settle to round-off, the step is re-taken from
+    the same base with the step length as the unknown, as for Runge–Kutta solvers.
 
     Only for the period kernel (not a diffrax solver). The acceleration's jaxpr must
-    consist of primitives with a recurrence (`taylor_coefficients` lists them). For
-    one that has none, `Taylor()` raises `NotImplementedError` naming the primitive
-    at the first call, and `Taylor(fallback=diffrax.Dopri8())` (the default solver of
+    consist of primitives with a recurrence. For one that has none, `Taylor()` raises
+    `NotImplementedError` at the first call, naming the primitive and listing those
+    supported, and `Taylor(fallback=diffrax.Dopri8())` (the default solver of
     `sweep_periods`) steps with the fallback instead. The fallback also steps where
     the coefficients' straight-line program would exceed ~2000 equations (the
     θ-form cycloid, the rotating hoop): the kernel would then loop over the orders,
-    measured 5-10x slower than Dopri8 per period and slower to compile (one core,
-    4096 amplitudes: cycloid 17k against 83k periods/s, hoop 4k against 40k); a
-    plain `Taylor()` still takes that loop. Which one ran is `SweepResult.solver`.
-    Its forward-mode derivative compiles longer than a Runge–Kutta step's (the
-    recurrence's tangent: `jax.grad` of a 64-amplitude "matched" sweep of the
-    pendulum, first call 10.5 s against 4.4 s with `Dopri8`).
+    several times slower than Dopri8 per period and slower to compile; a plain
+    `Taylor()` still takes that loop. Which one ran is `SweepResult.solver`. Its
+    forward-mode derivative (the recurrence's tangent, for `jax.grad` of a sweep)
+    compiles longer than a Runge–Kutta step's.
 
     **Arguments:**
 
@@ -89,35 +90,21 @@ class Taylor(eqx.Module):
             )
 
     def supports(self, accel: Callable, dtype, *params) -> bool:
-        """Whether `taylor_coefficients` has a recurrence for every primitive of
+        """Whether there is a recurrence for every primitive of
         `accel(s, x, v, *params)` (scalars `s, x, v`; `params` shape-dtype specs or
         arrays without a lane axis): traced once, nothing is evaluated."""
-        lanes = [
-            jax.ShapeDtypeStruct((1, *np.shape(p)), jnp.asarray(p).dtype)
-            if not isinstance(p, jax.ShapeDtypeStruct)
-            else jax.ShapeDtypeStruct((1, *p.shape), p.dtype)
-            for p in params
-        ]
-        one = jax.ShapeDtypeStruct((1,), dtype)
         coeffs = taylor_coefficients(lambda s, x, v, p: accel(s, x, v, *p), 2, dtype)
         try:
-            jax.eval_shape(lambda s, x, v, p: coeffs(s, x, v, p), one, one, one, lanes)
+            _trace(coeffs, dtype, params)
         except NotImplementedError:
             return False
         return True
 
     def unrolls(self, accel: Callable, dtype, *params) -> bool:
         """Whether the period kernel computes `accel`'s coefficients at this order as
-        one straight-line program (at most `_UNROLL_BUDGET` equations) rather than
-        by the slower loop over orders; arguments as `supports` (which must hold).
-        Traced once, nothing is evaluated."""
-        lanes = [
-            jax.ShapeDtypeStruct((1, *p.shape), p.dtype)
-            if isinstance(p, jax.ShapeDtypeStruct)
-            else jax.ShapeDtypeStruct((1, *np.shape(p)), jnp.asarray(p).dtype)
-            for p in params
-        ]
-        one = jax.ShapeDtypeStruct((1,), dtype)
+        one straight-line program (of at most ~2000 equations) rather than by the
+        slower loop over orders; arguments as `supports` (which must hold). Traced
+        once, nothing is evaluated."""
         coeffs = taylor_coefficients(
             lambda s, x, v, p: accel(s, x, v, *p),
             self.order,
@@ -125,5 +112,18 @@ class Taylor(eqx.Module):
             unrolled=True,
             vectorized_trig=True,
         )
-        jax.eval_shape(lambda s, x, v, p: coeffs(s, x, v, p), one, one, one, lanes)
+        _trace(coeffs, dtype, params)
         return coeffs.unrolled
+
+
+def _trace(coeffs, dtype, params):
+    """`coeffs` traced for one lane: `params` (shape-dtype specs or arrays) get a lane
+    axis of length 1."""
+    lanes = [
+        jax.ShapeDtypeStruct((1, *p.shape), p.dtype)
+        if isinstance(p, jax.ShapeDtypeStruct)
+        else jax.ShapeDtypeStruct((1, *np.shape(p)), jnp.asarray(p).dtype)
+        for p in params
+    ]
+    one = jax.ShapeDtypeStruct((1,), dtype)
+    jax.eval_shape(lambda s, x, v, p: coeffs(s, x, v, p), one, one, one, lanes)
