@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax._cli import main as _cli
+from lagrax._cli import chart, main as _cli, run as cli_run, targets
 from lagrax.systems import pendulum
 
 
@@ -199,7 +199,7 @@ def test_chart_marks_failures_and_plots_the_error(tmp_path):
     status = np.zeros(20, np.int32)
     status[[3, 17]] = 2
     period[[3, 17]] = np.nan
-    target = _cli._Target("pendulum", None, "θ₀ (rad)", T0=2 * np.pi)
+    target = targets.Target("pendulum", None, "θ₀ (rad)", T0=2 * np.pi)
     target.extra["reference"] = "exact"
     r = {
         "system": "pendulum",
@@ -210,8 +210,8 @@ def test_chart_marks_failures_and_plots_the_error(tmp_path):
         "status": status,
     }
     target.exact = exact_pendulum
-    _cli._add_reference(r, target, None)
-    fig = _cli._chart([r], 1e-13)
+    cli_run.add_reference(r, target, None)
+    fig = chart.chart([r], 1e-13)
     top, bottom = fig.axes
     assert top.get_ylabel() == "T / T₀" and bottom.get_yscale() == "log"
     failed = [line for line in top.get_lines() if line.get_marker() == "x"]

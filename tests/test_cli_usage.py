@@ -5,6 +5,7 @@ called), so these are cheap; the end-to-end runs are in test_cli.py.
 """
 
 import os
+import re
 import sys
 import textwrap
 
@@ -13,7 +14,15 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax._cli import main as _cli
+from lagrax._cli import (
+    chart,
+    main as _cli,
+    output,
+    parser,
+    processes,
+    run as cli_run,
+    targets,
+)
 
 
 def run(capsys, *argv):
@@ -157,33 +166,33 @@ def test_factory_with_a_required_parameter_runs_when_given(capsys, user_dir, tmp
 
 def test_unreachable_cluster_exits_3(capsys, monkeypatch):
     def unreachable(args):
-        raise _cli._Unreachable("could not join the other processes")
+        raise processes.Unreachable("could not join the other processes")
 
-    monkeypatch.setattr(_cli, "_run_sweep", unreachable)
+    monkeypatch.setattr(_cli, "run_sweep", unreachable)
     rc, out, err = run(capsys, "sweep")
     assert rc == 3 and out == ""
     assert err == "lagrax: error: could not join the other processes\n"
 
 
 def test_cpu_count_without_affinity(monkeypatch):
-    assert _cli._cpu_count() >= 1
+    assert parser.cpu_count() >= 1
     monkeypatch.delattr(os, "sched_getaffinity", raising=False)
-    assert _cli._cpu_count() == (os.cpu_count() or 1)
+    assert parser.cpu_count() == (os.cpu_count() or 1)
 
 
 def test_status_names_follow_the_status_codes():
     for code, name in lagrax.STATUS_CODES.items():
         expected = name if isinstance(name, str) else str(name[0])
-        assert _cli._status_name(code) == expected
+        assert output.status_name(code) == expected
     unknown = max(lagrax.STATUS_CODES) + 100
-    assert _cli._status_name(unknown) == f"status_{unknown}"
+    assert output.status_name(unknown) == f"status_{unknown}"
 
 
 def test_chart_switches_to_a_log_axis_for_a_wide_range():
     # Periods over two decades of T/T0 (a well that stiffens and softens a lot).
     amplitude = np.linspace(0.1, 3.0, 30)
     period = 2 * np.pi * np.geomspace(1.0, 100.0, 30)
-    target = _cli._Target("pendulum", None, "θ₀ (rad)", T0=2 * np.pi)
+    target = targets.Target("pendulum", None, "θ₀ (rad)", T0=2 * np.pi)
     target.extra["reference"] = "none"
     r = {
         "system": "pendulum",
@@ -193,12 +202,45 @@ def test_chart_switches_to_a_log_axis_for_a_wide_range():
         "period": period,
         "status": np.zeros(amplitude.size, np.int32),
     }
-    _cli._add_reference(r, target, None)
+    cli_run.add_reference(r, target, None)
     assert np.nanmax(period) / np.nanmin(period) > 30
-    fig = _cli._chart([r], 1e-13)
+    fig = chart.chart([r], 1e-13)
     top = fig.axes[0]
     assert top.get_yscale() == "log"
     assert isinstance(top.yaxis.get_major_formatter(), matplotlib.ticker.FuncFormatter)
     fig.canvas.draw()
     labels = [t.get_text() for t in top.get_yticklabels() if t.get_text()]
     assert labels and not any("10^" in s or "×" in s for s in labels)
+
+
+def test_the_command_line_names_no_system():
+    # Each system declares what the command needs (lagrax.systems.SweepSpec): the
+    # command line's own code special-cases none of them by name.
+    names = targets.builtin_names()
+    assert {"pendulum", "cycloid", "asymmetric_well"} <= set(names)
+    folder = os.path.dirname(targets.__file__)
+    for file in os.listdir(folder):
+        if file.endswith(".py"):
+            with open(os.path.join(folder, file), encoding="utf-8") as f:
+                source = f.read()
+            for name in names:
+                assert not re.search(rf"\b{name}\b", source), (file, name)
+
+
+def test_a_system_is_swept_as_its_sweep_spec_says(monkeypatch):
+    from lagrax.systems import rotating_hoop, SweepSpec
+
+    def sweep_range(*, R=1.0):
+        return 0.1 * R, 0.5 * R
+
+    spec = SweepSpec("bead on a hoop", "θ₀ (rad)", sweep_range, (0.0, 1.0), "quarter")
+    monkeypatch.setattr(rotating_hoop, "SWEEP", spec, raising=False)
+    target = targets.builtin("rotating_hoop", {"R": 2.0})
+    assert target.default_range == (0.2, 1.0) and target.bounds == (0.0, 1.0)
+    assert target.method == "quarter" and target.amplitude_label == "θ₀ (rad)"
+    assert chart.label({"target": target}) == "bead on a hoop (amplitude θ₀ (rad))"
+    # Without a SweepSpec: the release point is the amplitude, no default range.
+    monkeypatch.delattr(rotating_hoop, "SWEEP")
+    target = targets.builtin("rotating_hoop", {})
+    assert target.default_range is None and target.method == "matched"
+    assert target.amplitude_label == "q₀" and target.to_q0 is None

@@ -10,7 +10,11 @@ Every module here has the same shape:
 - `period(amplitude, **params)` where the period is known in closed form (`pendulum`,
     `cycloid`);
 - `force(**params)` where the system has a non-conservative force
-    (`damped_pendulum`): then `acceleration` solves Lagrange's equations with it.
+    (`damped_pendulum`): then `acceleration` solves Lagrange's equations with it;
+- `small_amplitude_period(**params)` where the limit of the period at small
+    amplitudes is known in closed form;
+- `SWEEP`, a `SweepSpec`, where `lagrax sweep NAME` needs more than the release
+    point $q_0$ as the amplitude (its symbol, default range, method, coordinate).
 
 `parameters(module)` lists a system's parameters and their defaults. Older names are
 kept as aliases: `pendulum.pendulum_period`, `cycloid.cycloid_period` (with their
@@ -33,6 +37,7 @@ from . import (
     sphere as sphere,
     spherical_pendulum as spherical_pendulum,
 )
+from ._sweep_spec import SweepSpec as SweepSpec
 from .pendulum import pendulum_period as pendulum_period
 
 
