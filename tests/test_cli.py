@@ -46,6 +46,11 @@ USER_MODULE = textwrap.dedent(
         return 0.5 * qdot**2 + jnp.cos(q)
 
 
+    def unpacked(q, qdot, t):
+        a, b = q
+        return 0.5 * qdot @ qdot + jnp.cos(a) + jnp.cos(b)
+
+
     def two(a, b):
         return a
 
@@ -104,7 +109,8 @@ def test_bad_arguments_exit_2_with_one_line(capsys, argv):
         ("my_systems:not_callable", [], "not callable"),
         ("my_systems:two", [], "takes 2 required argument(s)"),
         ("my_systems:double", [], "has 2 coordinates"),
-        ("my_systems:vector", [], "must return a scalar; got shape (1,)"),
+        ("my_systems:vector", [], "must return a real floating-point scalar"),
+        ("my_systems:unpacked", [], "has 2 coordinates"),
         ("my_systems:pendulum", ["--param", "gravity=2"], "no parameter 'gravity'"),
         ("my_systems:L", ["--param", "g=2"], "not a factory"),
         ("my_systems:broken_factory", [], "raised RuntimeError: no such physics"),

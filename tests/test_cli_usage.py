@@ -132,7 +132,7 @@ def user_dir(tmp_path, monkeypatch):
             "returned a function of 2 required argument(s)",
         ),
         ("cli_usage_systems:needs_k", [], "needs the parameter 'k'"),
-        ("cli_usage_systems:always_fails", [], "raised ValueError: never traceable"),
+        ("cli_usage_systems:always_fails", [], "failed: ValueError: never traceable"),
         ("cli_usage_systems:box.missing", [], "has no attribute 'missing'"),
         ("cli_usage_systems:", [], "expected module:attr"),
         ("cli_usage_broken:L", [], "raised RuntimeError: bad import"),
@@ -244,3 +244,13 @@ def test_a_system_is_swept_as_its_sweep_spec_says(monkeypatch):
     target = targets.builtin("rotating_hoop", {})
     assert target.default_range is None and target.method == "matched"
     assert target.amplitude_label == "q₀" and target.to_q0 is None
+
+
+def test_a_lagrangian_summed_over_its_coordinates_is_of_one_coordinate():
+    # It runs at every shape: one coordinate when given one (the command line once
+    # counted the widest shape it accepted and refused it).
+    L = lambda q, qdot, t: 0.5 * np.sum(qdot**2) - 0.5 * np.sum(q**2)
+    targets.check_one_dof(targets.Target("mine:L", L))
+    unpacked = lambda q, qdot, t: (lambda a, b: a * b)(*q) + qdot @ qdot
+    with pytest.raises(parser.UsageError, match="'mine:L' has 2 coordinates"):
+        targets.check_one_dof(targets.Target("mine:L", unpacked))

@@ -24,3 +24,36 @@ def test_float32_is_named_with_the_line_that_enables_float64():
                 call()
             assert 'jax.config.update("jax_enable_x64", True)' in str(info.value)
             assert "separatrix" not in str(info.value)
+
+
+def _unpacked(q, qdot, t):
+    a, b = q
+    return 0.5 * (qdot[0] ** 2 + qdot[1] ** 2) + jnp.cos(a) + jnp.cos(b)
+
+
+def _indexed(q, qdot, t):
+    return 0.5 * (qdot[0] ** 2 + qdot[1] ** 2) + jnp.cos(q[0]) + jnp.cos(q[1])
+
+
+def _matrix(q, qdot, t):
+    M = jnp.array([[2.0, 0.5], [0.5, 1.0]])
+    return 0.5 * qdot @ M @ qdot - 0.5 * q @ q
+
+
+def _three(q, qdot, t):
+    x, y, z = q
+    return 0.5 * qdot @ qdot - x * y * z
+
+
+@pytest.mark.parametrize(
+    "L, n", [(_unpacked, 2), (_indexed, 2), (_matrix, 2), (_three, 3)]
+)
+def test_a_lagrangian_of_more_coordinates_is_named_so(L, n):
+    # Whatever way L reads q, the sweep says how many coordinates it has.
+    for call in (
+        lambda: lagrax.sweep_periods(L, jnp.array([0.5, 1.0])),
+        lambda: lagrax.period(L, 0.5),
+    ):
+        with pytest.raises(ValueError, match=f"it has {n} coordinates") as info:
+            call()
+        assert "one coordinate, q of shape (1,)" in str(info.value)

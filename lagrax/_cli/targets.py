@@ -20,9 +20,6 @@ from dataclasses import dataclass, field
 from .parser import DEFAULT_TARGETS, first_line, UsageError
 
 
-_PROBE_DOF = 6  # coordinates tried when telling the user how many L has
-
-
 @dataclass
 class Target:
     name: str  # as given on the command line
@@ -275,65 +272,25 @@ def _user(spec, params):
     return Target(spec, L, "q₀")
 
 
-def _coordinates(L):
-    """How many coordinates `L(q, qdot, t)` uses, or a `UsageError` saying why not.
-
-    JAX clamps out-of-range static indices, so a two-coordinate L written with `q[1]`
-    also runs on q of shape (1,): count the coordinates L actually depends on, at a
-    generic point of the widest shape it accepts.
-    """
-    import jax
-    import jax.numpy as jnp
-
-    def shape_with(n):
-        q = jax.ShapeDtypeStruct((n,), jnp.float64)
-        t = jax.ShapeDtypeStruct((), jnp.float64)
-        return jax.eval_shape(L, q, q, t)
-
-    accepted, first_error = [], None
-    for n in range(1, _PROBE_DOF + 1):
-        try:
-            out = shape_with(n)
-        except Exception as e:  # noqa: BLE001 - the user's code
-            first_error = first_error or e
-            continue
-        shape = getattr(out, "shape", None)
-        if shape != ():
-            raise UsageError(
-                "L(q, qdot, t) must return a scalar; got "
-                + (f"shape {shape}" if shape is not None else type(out).__name__)
-            )
-        accepted.append(n)
-    if not accepted:
-        raise UsageError(
-            "L(q, qdot, t) with q, qdot of shape (1,) and t a scalar raised "
-            f"{first_line(first_error)}"
-        )
-    n = max(accepted)
-    q = 0.3 + 0.11 * jnp.arange(n, dtype=jnp.float64)
-    qdot = 0.2 + 0.07 * jnp.arange(n, dtype=jnp.float64)
-    try:
-        gq, gv = jax.grad(lambda q, v: L(q, v, 0.1), argnums=(0, 1))(q, qdot)
-        used = [i for i in range(n) if gq[i] != 0 or gv[i] != 0]
-    except Exception:  # noqa: BLE001 - not differentiable here: trust the shapes
-        used = []
-    return max(len(used) and used[-1] + 1, min(accepted))
-
-
 def check_one_dof(target):
-    """`L(q, qdot, t)` must be a Lagrangian of one coordinate."""
+    """`L(q, qdot, t)` must be a Lagrangian of one coordinate: the library's check,
+    worded for the command line where it counts the coordinates."""
+    import numpy as np
+
+    from .._checks import check_one_dof as check
+
     what = f"TARGET {target.name!r}" if ":" in target.name else target.name
     try:
-        n = _coordinates(target.L)
-    except UsageError as e:
-        raise UsageError(
-            f"{what}: {e}; lagrax sweep needs a Lagrangian of one coordinate"
-        ) from None
-    if n != 1:
+        check(target.L, np.float64)
+    except (TypeError, ValueError) as e:
+        m = re.search(r"it has (\d+) coordinates", str(e))
+        if m is None:
+            raise UsageError(f"{what}: {e}") from None
+        n = m.group(1)
         raise UsageError(
             f"{what} has {n} coordinates (q of shape ({n},)); lagrax sweep needs a "
             "Lagrangian of one coordinate"
-        )
+        ) from None
 
 
 # ------------------------------------------------------------------------------
