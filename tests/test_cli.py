@@ -1,5 +1,6 @@
 import dataclasses
 import os
+import stat
 import sys
 import textwrap
 
@@ -161,7 +162,18 @@ def test_unwritable_output_fails_before_the_sweep(capsys, monkeypatch, tmp_path)
     assert rc == 2
 
 
-def test_sweep_writes_table_csv_and_two_panel_chart(capsys, tmp_path):
+@pytest.fixture
+def umask_022():
+    old = os.umask(0o022)
+    yield
+    os.umask(old)
+
+
+def mode(path):
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+def test_sweep_writes_table_csv_and_two_panel_chart(capsys, tmp_path, umask_022):
     out_csv = tmp_path / "res.csv"
     chart = tmp_path / "chart.png"
     svg = tmp_path / "chart.svg"
@@ -190,6 +202,8 @@ def test_sweep_writes_table_csv_and_two_panel_chart(capsys, tmp_path):
     image = matplotlib.image.imread(chart)
     assert chart.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and image.ndim == 3
     assert not os.path.exists(str(out_csv) + ".partial")
+    # Readable by others, as the umask says (not 0600 from a temporary file).
+    assert mode(out_csv) == mode(chart) == 0o644
     # The same chart as SVG: two axes, T/T0 above and the relative error below.
     rc, _, err = run(capsys, *argv, "--plot", svg, "--quiet")
     assert rc == 0, err
@@ -319,7 +333,9 @@ def test_failures_exit_1_and_are_named(capsys, tmp_path, user_module):
     assert "1 amplitudes failed" in err and "does not oscillate" in err
 
 
-def test_interrupted_sweep_leaves_no_file_and_resumes(capsys, monkeypatch, tmp_path):
+def test_interrupted_sweep_leaves_no_file_and_resumes(
+    capsys, monkeypatch, tmp_path, umask_022
+):
     out_npz = tmp_path / "res.npz"
     argv = [
         "sweep", "pendulum", "--count", "100", "--chunk-size", "8", "--devices", "1",
@@ -338,10 +354,9 @@ def test_interrupted_sweep_leaves_no_file_and_resumes(capsys, monkeypatch, tmp_p
     rc, out, err = run(capsys, *argv)
     assert rc == 130 and "resume" in err
     assert not out_npz.exists()
-    assert sorted(os.listdir(str(out_npz) + ".partial")) == [
-        "manifest.json",
-        "pendulum-00000.npz",
-    ]
+    partial = str(out_npz) + ".partial"
+    assert sorted(os.listdir(partial)) == ["manifest.json", "pendulum-00000.npz"]
+    assert mode(os.path.join(partial, "pendulum-00000.npz")) == 0o644
     calls.clear()
 
     def count(*args, **kwargs):

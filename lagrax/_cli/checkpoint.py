@@ -16,13 +16,23 @@ from .processes import broadcast
 BLOCK_CHUNKS = 4  # chunks per device in a checkpoint/progress block
 
 
+def _umask():
+    mask = os.umask(0o022)  # reading the umask means setting it: set it back at once
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path, write):
-    """`write(tmp_path)`, then rename over `path`: never a half-written file."""
+    """`write(tmp_path)`, then rename over `path`: never a half-written file.
+
+    The file gets the mode any other tool would create it with (0666 less the umask),
+    not the 0600 of the temporary file it is renamed from."""
     directory = os.path.dirname(os.path.abspath(path))
     suffix = os.path.splitext(path)[1]
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=".lagrax-", suffix=suffix)
     os.close(fd)
     try:
+        os.chmod(tmp, 0o666 & ~_umask())
         write(tmp)
         os.replace(tmp, path)
     except BaseException:
