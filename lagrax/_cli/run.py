@@ -5,7 +5,7 @@ import time
 
 from . import targets as _targets
 from .chart import plot
-from .checkpoint import atomic_write, Blocks
+from .checkpoint import Blocks, DamagedPiece
 from .output import Bar, status_name, table, write_out
 from .parser import check_paths, UsageError
 from .processes import broadcast, setup_jax
@@ -41,8 +41,16 @@ def sweep(target, args, devices, blocks, targets, bar):
         if blocks.is_done(targets, target, b):
             part = None
             if blocks.writer:
-                with np.load(blocks.path(target, b)) as f:
-                    part = {k: f[k] for k in f.files}
+                try:
+                    part = blocks.load(target, b)
+                except DamagedPiece as e:
+                    part = e
+                if not isinstance(part, dict):  # verified at the start: changed since
+                    raise UsageError(
+                        f"checkpoint {blocks.path(target, b)} changed during the run"
+                        + (f" ({part})" if part is not None else "")
+                        + "; run the command again"
+                    )
         else:
 
             def progress(done, total, offset=sl.start):
@@ -70,9 +78,7 @@ def sweep(target, args, devices, blocks, targets, bar):
             if hasattr(res, "error_estimate"):
                 part["error_estimate"] = np.asarray(res.error_estimate)
             if blocks.dir is not None and blocks.writer:
-                atomic_write(
-                    blocks.path(target, b), lambda p, part=part: np.savez(p, **part)
-                )
+                blocks.save(target, b, part)
         parts.append(part)
         bar.to(sl.stop)
     elapsed = time.perf_counter() - start
