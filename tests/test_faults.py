@@ -5,8 +5,9 @@ What tests/test_period.py and tests/test_cli.py already cover is not repeated he
 a first run; bad arguments of the common kinds). Added here: every failure kind in one
 batch with the others bit-identical, chunk-size independence bit for bit (failures
 included), an interrupted rerun that keeps the earlier complete output and computes a
-damaged checkpoint again, an interrupt inside the final write, a sweep killed with SIGKILL and resumed, failing amplitudes
-counted by the command line (exit 1), and the remaining bad-argument kinds.
+damaged checkpoint again, an interrupt inside the final write, a sweep killed with
+SIGKILL and resumed, failing amplitudes counted by the command line (exit 1), and the
+remaining bad-argument kinds.
 """
 
 import os
