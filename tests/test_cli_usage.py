@@ -23,6 +23,7 @@ from lagrax._cli import (
     run as cli_run,
     targets,
 )
+from lagrax.systems import pendulum
 
 
 def run(capsys, *argv):
@@ -254,3 +255,45 @@ def test_a_lagrangian_summed_over_its_coordinates_is_of_one_coordinate():
     unpacked = lambda q, qdot, t: (lambda a, b: a * b)(*q) + qdot @ qdot
     with pytest.raises(parser.UsageError, match="'mine:L' has 2 coordinates"):
         targets.check_one_dof(targets.Target("mine:L", unpacked))
+
+
+def test_chart_draws_the_cutoff_that_decides_with_legends_off_the_curves():
+    # Estimates between rtol and 100 rtol: every lane succeeded, and the chart must
+    # not read as failure. The line drawn is the cutoff that decides.
+    amplitude = np.linspace(0.1, 3.1, 200)
+    period = np.asarray(pendulum.period(amplitude)) * (1 + 1e-14)
+    target = targets.Target("pendulum", None, "θ₀ (rad)", T0=2 * np.pi)
+    target.exact = lambda a: np.asarray(pendulum.period(a))
+    target.extra["reference"] = "exact"
+    r = {
+        "system": "pendulum",
+        "target": target,
+        "amplitude": amplitude,
+        "q0": amplitude,
+        "period": period,
+        "status": np.zeros(amplitude.size, np.int32),
+        "error_estimate": np.geomspace(2e-13, 5e-12, amplitude.size),
+    }
+    cli_run.add_reference(r, target, None)
+    fig = chart.chart([r], 1e-13)
+    top, bottom = fig.axes
+    flat = [
+        line.get_ydata()[0]
+        for line in bottom.get_lines()
+        if len(set(line.get_ydata())) == 1 and len(line.get_ydata()) == 2
+    ]
+    assert flat == [pytest.approx(1e-11)]  # 100 rtol, not rtol
+    assert any("cutoff" in text.get_text() for text in bottom.get_legend().texts)
+    assert bottom.get_ylim()[0] < 2e-13 and bottom.get_ylim()[1] > 1e-11
+    fig.canvas.draw()
+    for ax in (top, bottom):
+        box = ax.get_legend().get_window_extent()
+        for line in ax.get_lines():
+            xy = line.get_transform().transform(line.get_xydata())
+            inside = (
+                (xy[:, 0] >= box.x0)
+                & (xy[:, 0] <= box.x1)
+                & (xy[:, 1] >= box.y0)
+                & (xy[:, 1] <= box.y1)
+            )
+            assert not inside.any(), (ax.get_ylabel(), line.get_label())

@@ -19,13 +19,16 @@ def chart(results, rtol):
     import numpy as np
     from matplotlib import ticker
 
+    from .._period.sweep import PROMISE
+
     fig, (top, bottom) = plt.subplots(
         2,
         1,
-        figsize=(7.0, 6.4),
+        figsize=(9.0, 6.4),
         sharex=True,
         gridspec_kw={"height_ratios": [3, 2]},
     )
+    bottom.set_yscale("log")
     normalized = all(r["target"].T0 for r in results)
     floor = 1e-17
     any_failed = False
@@ -72,8 +75,15 @@ def chart(results, rtol):
                 linewidth=1,
                 label=f"{r['system']}: error estimate",
             )
+    # What decides: a lane whose estimate exceeds PROMISE rtol fails
+    # (tolerance_not_met); a line at rtol itself would sit below every estimate.
+    cutoff = PROMISE * rtol
     bottom.axhline(
-        rtol, color="0.4", linestyle=":", linewidth=1, label=f"rtol {rtol:g}"
+        cutoff,
+        color="0.4",
+        linestyle=":",
+        linewidth=1,
+        label=f"cutoff {PROMISE:g} rtol = {cutoff:.0e}: an estimate above fails",
     )
     top.set_ylabel("T / T₀" if normalized else "period T")
     ys = [
@@ -91,19 +101,20 @@ def chart(results, rtol):
         top.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
     top.set_title("Period against amplitude (lagrax sweep)")
     top.grid(True, which="both", alpha=0.3)
-    top.legend(fontsize=8)
-    bottom.set_yscale("log")
+    # Legends beside the panels, never over the curves.
+    outside = dict(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    top.legend(fontsize=8, **outside)
     shown = [
         line.get_ydata() for line in bottom.get_lines() if len(line.get_ydata()) > 1
     ]
-    shown = np.concatenate(shown) if shown else np.array([rtol])
-    bottom.set_ylim(max(floor / 2, shown.min() / 4), max(rtol, shown.max()) * 8)
+    shown = np.concatenate(shown) if shown else np.array([cutoff])
+    bottom.set_ylim(max(floor / 2, shown.min() / 4), max(cutoff, shown.max()) * 8)
     bottom.yaxis.set_major_locator(ticker.LogLocator(numticks=8))
     bottom.set_ylabel("relative error")
     bottom.set_xlabel("amplitude")
     bottom.grid(True, which="major", alpha=0.3)
     if bottom.get_legend_handles_labels()[0]:
-        bottom.legend(fontsize=7, loc="upper left")
+        bottom.legend(fontsize=7, **outside)
     note = f"errors below {floor:.0e} drawn at it"
     if any_failed:
         note += "; × marks failed amplitudes"
