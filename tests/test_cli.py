@@ -266,6 +266,12 @@ def test_user_module_by_attr_and_by_path_with_and_without_param(
             assert set(f["reference_kind"]) == {"none"}
             assert np.all(f["status"] == 0)
             results[target] = (f["amplitude"], f["period"])
+            # T₀ from the small oscillations at the bottom of the well: 2π/√g.
+            g = 4.0 if "g=4" in extra else 1.0
+            np.testing.assert_allclose(
+                f["T_over_T0"], f["period"] / (2 * np.pi / np.sqrt(g)), rtol=1e-12
+            )
+        assert "T/T0" in stdout.splitlines()[0]
     amplitude, period = results["my_systems:L"]
     np.testing.assert_allclose(period, exact_pendulum(amplitude), rtol=1e-12)
     np.testing.assert_array_equal(results[f"{user_module}:L"][1], period)

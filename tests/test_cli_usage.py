@@ -9,6 +9,7 @@ import re
 import sys
 import textwrap
 
+import jax.numpy as jnp
 import matplotlib.ticker
 import numpy as np
 import pytest
@@ -297,3 +298,40 @@ def test_chart_draws_the_cutoff_that_decides_with_legends_off_the_curves():
                 & (xy[:, 1] <= box.y1)
             )
             assert not inside.any(), (ax.get_ylabel(), line.get_label())
+
+
+def test_small_oscillation_period_at_the_bottom_of_the_well():
+    # A cubic well whose bottom is at x = 1.5, stiffness 9: T₀ = 2π/3, from release
+    # points on either side; none for a free particle or a hump.
+    well = lambda q, v, t: 0.5 * v[0] ** 2 - 4.5 * (q[0] - 1.5) ** 2 - (q[0] - 1.5) ** 3
+    for q0 in (1.2, 2.0, 1.5):
+        T0 = targets.small_oscillation_period(well, q0)
+        assert T0 == pytest.approx(2 * np.pi / 3, rel=1e-12)
+    # The pendulum from near its hump, on both sides: the bottom at 0, not the hump.
+    pendulum_L = lambda q, v, t: 0.5 * v[0] ** 2 + 4 * jnp.cos(q[0])
+    for q0 in (3.1, -3.0):
+        T0 = targets.small_oscillation_period(pendulum_L, q0)
+        assert T0 == pytest.approx(np.pi, rel=1e-12)
+    assert (
+        targets.small_oscillation_period(lambda q, v, t: 0.5 * v[0] ** 2, 1.0) is None
+    )
+    hump = lambda q, v, t: 0.5 * v[0] ** 2 + 0.5 * q[0] ** 2
+    assert targets.small_oscillation_period(hump, 1.0) is None
+
+
+def test_no_known_T0_leaves_the_column_out(tmp_path):
+    target = targets.Target("mine:L", None)
+    target.extra["reference"] = "none"
+    r = {
+        "system": "mine:L",
+        "target": target,
+        "amplitude": np.array([0.1, 0.2]),
+        "q0": np.array([0.1, 0.2]),
+        "period": np.array([6.3, 6.4]),
+        "status": np.zeros(2, np.int32),
+        "steps": np.array([10, 11]),
+    }
+    cli_run.add_reference(r, target, None)
+    output.write_out(str(tmp_path / "res.csv"), [r])
+    header = (tmp_path / "res.csv").read_text().splitlines()[0].split(",")
+    assert "period" in header and "T_over_T0" not in header

@@ -10,6 +10,12 @@ r"""The `lagrax` command: `lagrax sweep [TARGET ...]` and `lagrax systems`.
   returns one (`--param name=value` is passed to the factory); the amplitude is then the
   release point $q_0$ and the reference is `lagrax.quadrature_period` on request.
 
+The table and the `--out` file give $T/T_0$, with $T_0$ the small-amplitude period:
+the system's own formula where it has one, else $2\pi/\omega$ at the bottom of the well
+the first release point swings through ($\omega^2 = -\partial\ddot q/\partial q$
+there); where there is no such stable point the column is left out (NaN for that
+system where another one has it).
+
 Parameters default to 1 (`g = r = R = 1`). Exit status: 0 all periods succeeded, 1 some
 amplitudes failed (their status is in the table and file), 2 bad arguments or unusable
 files, 3 the other processes of a `--distributed` run could not be reached, 130

@@ -89,6 +89,8 @@ def write_out(path, results):
 
     estimates = all("error_estimate" in r for r in results)
     columns = (*_COLUMNS, "error_estimate") if estimates else _COLUMNS
+    if not any(r["target"].T0 for r in results):  # no T₀ known: no column of NaN
+        columns = tuple(c for c in columns if c != "T_over_T0")
     if path.lower().endswith(".npz"):
         data = {
             "system": np.concatenate(

@@ -294,6 +294,66 @@ def check_one_dof(target):
 
 
 # ------------------------------------------------------------------------------
+# T₀ where no formula gives it
+
+
+def _sign(x):
+    return (x > 0) - (x < 0)
+
+
+def small_oscillation_period(L, q0):
+    r"""$T_0 = 2\pi/\omega$ of small oscillations about the bottom of the well that a
+    release from rest at `q0` swings through, or None where there is none.
+
+    The bottom is the first point where $\ddot q(q, \dot q = 0)$ changes sign, going
+    the way it points at `q0` (steps doubling up to a sixteenth of the scale
+    $\max(|q_0|, 1)$, then bisection); $\omega^2 = -\partial\ddot q/\partial q$
+    there, which must be positive (a stable equilibrium).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    import lagrax
+
+    def qddot(q):
+        return lagrax.accelerations(L, q[None], jnp.zeros((1,), q.dtype), 0.0)[0]
+
+    f = jax.jit(qddot)
+    at = lambda q: float(f(jnp.float64(q)))
+    try:
+        a, fa = float(q0), at(q0)
+        scale = max(abs(a), 1.0)
+        h = 1e-3 * scale
+        b = a
+        for _ in range(400 if fa != 0 else 0):
+            b = a + _sign(fa) * h
+            fb = at(b)
+            if not math.isfinite(fb) or _sign(fb) != _sign(fa):
+                break
+            a, fa, h = b, fb, min(2 * h, scale / 16)
+        else:
+            if fa != 0:
+                return None
+        if fa != 0:
+            if not math.isfinite(fb):
+                return None
+            for _ in range(200):  # bisection to adjacent floats
+                m = 0.5 * (a + b)
+                if m in (a, b):
+                    break
+                if _sign(at(m)) == _sign(fa):
+                    a = m
+                else:
+                    b = m
+        omega2 = -float(jax.grad(qddot)(jnp.float64(0.5 * (a + b))))
+    except Exception:  # noqa: BLE001 - L not differentiable or singular there
+        return None
+    if not (math.isfinite(omega2) and omega2 > 0):
+        return None
+    return 2 * math.pi / math.sqrt(omega2)
+
+
+# ------------------------------------------------------------------------------
 # The targets of a command line
 
 
@@ -303,6 +363,8 @@ def _fmt(x):
 
 
 def targets(args):
+    import numpy as np
+
     builtins = set(builtin_names())
     names = []
     for name in args.targets:
@@ -342,6 +404,9 @@ def targets(args):
                     f"--max {hi}"
                 )
         target.extra["range"] = (lo, hi)
+        if target.T0 is None:
+            q_lo = lo if target.to_q0 is None else target.to_q0(np.array([lo]))[0]
+            target.T0 = small_oscillation_period(target.L, float(q_lo))
         reference = args.reference
         if reference == "auto":
             reference = "exact" if target.exact is not None else "none"
