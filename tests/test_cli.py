@@ -312,6 +312,8 @@ def test_systems_lists_builtins_with_parameters_and_defaults(capsys):
     assert "exact period" in lines["pendulum"]
     assert "no exact period" in lines["asymmetric_well"]
     assert "2 coordinates" in lines["double_pendulum"]
+    # A function-valued default by its name, not its repr with an address.
+    assert "potential=harmonic " in lines["rectilinear"] and " at 0x" not in out
 
 
 def test_builtin_without_exact_period_uses_quadrature_on_request(capsys, tmp_path):

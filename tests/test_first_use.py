@@ -1,5 +1,9 @@
 """What a new user meets first: the diagnosis of common mistakes, readable help."""
 
+import inspect
+import pydoc
+import types
+
 import jax
 import jax.numpy as jnp
 import pytest
@@ -57,3 +61,31 @@ def test_a_lagrangian_of_more_coordinates_is_named_so(L, n):
         with pytest.raises(ValueError, match=f"it has {n} coordinates") as info:
             call()
         assert "one coordinate, q of shape (1,)" in str(info.value)
+
+
+def _public(module):
+    return {n: getattr(module, n) for n in dir(module) if not n.startswith("_")}
+
+
+def test_help_prints_short_signatures():
+    # Type aliases print by name: no expanded unions of jaxtyping forms in help().
+    functions = {n: f for n, f in _public(lagrax).items() if inspect.isfunction(f)}
+    assert {"simulate", "period", "accelerations", "energy"} <= set(functions)
+    for name, f in functions.items():
+        signature = str(inspect.signature(f))
+        assert "jaxtyping" not in signature and "Union[" not in signature, name
+    text = pydoc.render_doc(lagrax.simulate, renderer=pydoc.plaintext)
+    assert "simulate(L: Lagrangian, q0: Coordinates, qdot0: Coordinates" in text
+    assert "t0: RealScalarLike" in text
+
+
+def test_the_package_says_what_it_is_and_shows_only_its_own_names():
+    assert "Lagrangian" in lagrax.__doc__ and "sweep_periods" in lagrax.__doc__
+    for module in (lagrax, lagrax.systems):
+        for name, obj in _public(module).items():
+            where = (
+                obj.__name__
+                if isinstance(obj, types.ModuleType)
+                else getattr(obj, "__module__", None) or "lagrax"
+            )
+            assert where.startswith("lagrax"), (module.__name__, name, where)

@@ -420,6 +420,14 @@ def targets(args):
     return out
 
 
+def _default_text(value):
+    if value is inspect.Parameter.empty:
+        return "<required>"
+    if callable(value):  # a function's name, not its repr with an address
+        return getattr(value, "__name__", type(value).__name__)
+    return repr(value)
+
+
 def systems_lines():
     """`lagrax systems`: one line per built-in, its parameters and what it sweeps."""
     import numpy as np
@@ -434,10 +442,7 @@ def systems_lines():
         if not callable(factory):
             continue
         kws, _ = keywords_of(factory)
-        params = " ".join(
-            f"{k}=<required>" if d is inspect.Parameter.empty else f"{k}={d!r}"
-            for k, d in kws.items()
-        )
+        params = " ".join(f"{k}={_default_text(d)}" for k, d in kws.items())
         notes = []
         try:
             target = builtin(name, {})

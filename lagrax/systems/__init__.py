@@ -22,7 +22,7 @@ parameters also positional), and the older `acceleration` calls with fewer argum
 (e.g. `pendulum.acceleration(theta, r=..., g=...)`).
 """
 
-import inspect
+import inspect as _inspect
 
 from . import (
     asymmetric_well as asymmetric_well,
@@ -80,5 +80,5 @@ def parameters(system) -> dict:
     return {
         name: p.default
         for f in functions
-        for name, p in inspect.signature(f).parameters.items()
+        for name, p in _inspect.signature(f).parameters.items()
     }
