@@ -520,6 +520,22 @@ def prepare(L, q, qdot, t, force=None, names=("q", "qdot", "t")):
 _ONE_DOF_OK: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
+def _coordinates_read(L, dtype, most: int = 6):
+    """The fewest coordinates, 2 to `most`, at which `L` returns a scalar, or None.
+
+    A Lagrangian written for n coordinates fails on one in many ways (`a, b = q`, a
+    matrix of shape (n, n), `q[1]`): trying wider shapes names n, whatever the way."""
+    t = jax.ShapeDtypeStruct((), dtype)
+    for n in range(2, most + 1):
+        q = jax.ShapeDtypeStruct((n,), dtype)
+        try:
+            if jax.eval_shape(L, q, q, t).shape == ():
+                return n
+        except Exception:  # noqa: BLE001 - the user's code, at a shape it may refuse
+            continue
+    return None
+
+
 def check_one_dof(L, dtype):
     """`L` is a Lagrangian of one coordinate (`q` of shape `(1,)`) in `dtype`."""
     dtype = jnp.dtype(dtype)
@@ -529,9 +545,23 @@ def check_one_dof(L, dtype):
     except TypeError:  # not weak-referenceable or not hashable: check every time
         pass
     z = np.zeros((1,), dtype)  # (NumPy: `jnp.zeros` compiles on a first call)
-    check_lagrangian(
-        L, z, z, np.zeros((), dtype), what=" of one degree of freedom, q of shape (1,)"
-    )
+    try:
+        check_lagrangian(
+            L,
+            z,
+            z,
+            np.zeros((), dtype),
+            what=" of one degree of freedom, q of shape (1,)",
+        )
+    except (TypeError, ValueError) as e:
+        n = _coordinates_read(L, dtype)
+        if n is None:
+            raise
+        raise ValueError(
+            "`L` must be a Lagrangian of one coordinate, q of shape (1,); it has "
+            f"{n} coordinates (L(q, qdot, t) runs with q and qdot of shape ({n},)); "
+            f"for more coordinates use lagrax.simulate. At shape (1,): {e}"
+        ) from None
     try:
         _ONE_DOF_OK.setdefault(L, set()).add(dtype)
     except TypeError:
