@@ -2,6 +2,7 @@
 
 import diffrax as dfx
 import equinox as eqx
+import jax.numpy as jnp
 from jaxtyping import Array
 
 from .._checks import (
@@ -9,11 +10,12 @@ from .._checks import (
     check_instance,
     check_one_dof,
     describe,
+    is_concrete,
     positive_int,
     positive_scalar,
     tolerances,
 )
-from .._taylor.coefficients import Taylor
+from .._taylor.solver import Taylor
 from .solver import stepper_of
 
 
@@ -48,6 +50,7 @@ def check_options(
             "`solver` must be an adaptive explicit Runge–Kutta diffrax solver (with an "
             f"embedded error estimate), e.g. diffrax.Dopri8(); got {describe(solver)}."
         )
+    _check_precision(positive_scalar(rtol, "rtol", dtype), dtype)
     rtol, atol = tolerances(rtol, atol, dtype, stacklevel=3)
     return Options(
         rtol,
@@ -57,3 +60,18 @@ def check_options(
         positive_int(max_steps, "max_steps"),
         check_choice(method, "method", METHODS),
     )
+
+
+def _check_precision(rtol, dtype):
+    """Every lane fails when `rtol` is finer than a float32 state can resolve, with a
+    status that blames the orbit: say float32 instead, and how to get float64."""
+    finfo = jnp.finfo(dtype)
+    if finfo.bits < 64 and is_concrete(rtol) and float(rtol) < float(finfo.eps):
+        raise ValueError(
+            f"`rtol` must be at least the machine epsilon of the release points' "
+            f"dtype; got rtol={float(rtol):g} with {jnp.dtype(dtype).name} release "
+            f"points (epsilon {float(finfo.eps):.2g}): no lane can reach it. JAX "
+            "computes in float32 unless its 64-bit mode is on: add "
+            '`jax.config.update("jax_enable_x64", True)` at the start of the program '
+            f"(before any array is made), or pass rtol >= {float(finfo.eps):.2g}."
+        )

@@ -48,7 +48,7 @@ from .._results import (
     status_result,
     SUCCESS,
 )
-from .._taylor.coefficients import Taylor
+from .._taylor.solver import Taylor
 from .autodiff import periods_diff
 from .closure import closure_converted
 from .methods import Method

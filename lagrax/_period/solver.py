@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from .._stepper.base import AbstractStepper
 from .._stepper.runge_kutta import RungeKuttaStepper
 from .._stepper.taylor import TaylorStepper
-from .._taylor.coefficients import Taylor
+from .._taylor.solver import Taylor
 from .units import scaled_acceleration
 
 

@@ -13,7 +13,7 @@ from jaxtyping import Array, Float, Int
 
 from .._checks import as_real_array, check_callable, check_devices, positive_int
 from .._results import status_message, SUCCESS
-from .._taylor.coefficients import Taylor
+from .._taylor.solver import Taylor
 from .autodiff import periods_diff
 from .closure import closure_converted
 from .device import Periods

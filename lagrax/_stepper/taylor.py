@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._taylor.coefficients import taylor_coefficients
+from .._taylor.program import taylor_coefficients
 from .base import (
     AbstractStepper,
     fused,
