@@ -28,7 +28,6 @@ a call).
 
 import functools
 from collections.abc import Callable
-from typing import Any
 
 import diffrax as dfx
 import equinox as eqx
@@ -40,6 +39,7 @@ from jaxtyping import Array, Float, Int
 
 from .._checks import as_real_array, check_callable, check_devices, positive_int
 from .._eom.mechanics import _accelerations
+from .._jaxpr.canonical import canonical_lagrangian
 from .._jaxpr.fusion import one_fusion
 from .._jaxpr.trig import vectorized_trig
 from .._results import (
@@ -62,11 +62,11 @@ from .kernel import (
     _Tableau,
     MAX_SPEED,
     POSITION,
-    resolve_solver,
     stepper,
     TURNING,
 )
 from .period import _check_options
+from .reuse import canonical_inputs
 
 
 # Safeguarded Newton for the far turning point converges in ~5 iterations from the
@@ -785,59 +785,11 @@ def _sweep_body(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol)
     return out, jnp.sum(out[2])
 
 
-class _WithParameters(eqx.Module):
-    """A Lagrangian that is a pytree with float arrays (an `eqx.Module` with
-    parameters), as a hashable function of `(q, qdot, t, *arrays)`."""
-
-    static: Any = eqx.field(static=True)
-    treedef: Any = eqx.field(static=True)
-
-    def __call__(self, q, qdot, t, *arrays):
-        dynamic = jax.tree.unflatten(self.treedef, arrays)
-        return eqx.combine(dynamic, self.static)(q, qdot, t)
-
-
-def closure_converted(L: Callable, dtype):
-    """`L` with the tracers it closes over hoisted into explicit arguments.
-
-    Returns `(L_c, consts)` with `L_c(q, qdot, t, *consts) == L(q, qdot, t)`. When `L`
-    closes over no tracer, `L_c` is `L` itself, so the compiled
-    kernel is found again on the next call with the same `L`. A Lagrangian that is
-    a pytree with float arrays (an `eqx.Module` with parameters) passes them as
-    `consts` (its compiled kernel is found again for new parameter values, and
-    periods are differentiable with respect to them).
-    """
-    clean = getattr(jax._src.core, "trace_state_clean", None)
-    clean = clean is not None and clean()
-    z = np.zeros((1,), dtype)  # (NumPy: `jnp.zeros` compiles on a first call)
-    dynamic, static = eqx.partition(L, eqx.is_inexact_array)
-    arrays, treedef = jax.tree.flatten(dynamic)
-    if arrays:
-        L_p = _WithParameters(static, treedef)
-        if clean:
-            return L_p, list(arrays)
-        # Tracers closed over elsewhere (a function among its fields) come after.
-        converted, extra = jax.closure_convert(L_p, z, z, np.zeros((), dtype), *arrays)
-        if not extra:
-            return L_p, list(arrays)
-        return converted, list(arrays) + list(extra)
-    # Outside every transformation `L` closes over no tracer (a leaked one would
-    # raise anyway): nothing to hoist, and no trace of `L` per call (with the other
-    # checks ~0.5 ms before each dispatch, ~8% of a default 4096-amplitude sweep on
-    # one core, measured). (A private JAX function; without it, trace as before.)
-    if clean:
-        return L, []
-    converted, consts = jax.closure_convert(L, z, z, np.zeros((), dtype))
-    if not consts:
-        return L, []
-    return converted, list(consts)
-
-
 def one_lane(L, q0, tab, method, max_steps, rtol, atol, t_max, energy_tol, estimate):
     """`period` on the kernel: one release point (a scalar), one lane, the default
     device. Returns `(T, status, error_estimate)` as scalars."""
     cfg = _Method(tab, method, 1, max_steps, bool(estimate))
-    L_c, consts = closure_converted(L, q0.dtype)
+    L_c, consts = canonical_lagrangian(L, q0.dtype)
     device = (jax.devices()[0],)
     T, status, _, _, est = _periods_diff(
         L_c, cfg, device, q0[None], consts, rtol, atol, t_max, energy_tol
@@ -996,10 +948,11 @@ def sweep_periods(
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
     dtype = q0.dtype
-    solver = resolve_solver(solver, L, dtype)
+    # (Keyed on what L computes: a rebuilt L with new parameter values reuses the
+    # program compiled for the first.)
+    L_c, consts, solver = canonical_inputs(L, solver, dtype)
     tab = stepper(solver)
     cfg = _Method(tab, method, chunk_size, max_steps, bool(error_estimate))
-    L_c, consts = closure_converted(L, dtype)
     n = q0.shape[0]
 
     def run(q, order):
