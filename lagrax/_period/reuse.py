@@ -13,7 +13,7 @@ import jax
 import numpy as np
 
 from .._jaxpr.canonical import canonical_lagrangian
-from .kernel import resolve_solver
+from .solver import resolve_solver
 
 
 # The stepper chosen per (canonical L, dtype, solver), most recently used last.
