@@ -50,10 +50,10 @@ from .._results import (
 )
 from .._taylor.solver import Taylor
 from .autodiff import periods_diff
-from .closure import closure_converted
 from .methods import Method
 from .options import check_options
-from .solver import resolve_solver, stepper_of
+from .reuse import canonical_inputs
+from .solver import stepper_of
 
 
 class _Lane(eqx.Module):
@@ -187,8 +187,9 @@ def period(
     opts = check_options(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
+    L_c, consts, solver = canonical_inputs(L, solver, q0.dtype)
     T, status, estimate = _one_lane(
-        L, q0, stepper_of(resolve_solver(solver, L, q0.dtype)), opts, error_estimate
+        L_c, consts, q0, stepper_of(solver), opts, error_estimate
     )
     out = _Lane(T, status)
     if throw:
@@ -210,11 +211,11 @@ def period(
     return (out.period, estimate) if error_estimate else out.period
 
 
-def _one_lane(L, q0, stepper, opts, estimate):
+def _one_lane(L_c, consts, q0, stepper, opts, estimate):
     """`period` on the kernel: one release point (a scalar), one lane, the default
-    device. Returns `(T, status, error_estimate)` as scalars."""
+    device, for the canonical `L_c` and its constants. Returns `(T, status,
+    error_estimate)` as scalars."""
     cfg = Method(stepper, opts.method, 1, opts.max_steps, bool(estimate))
-    L_c, consts = closure_converted(L, q0.dtype)
     device = (jax.devices()[0],)
     args = (consts, opts.rtol, opts.atol, opts.t_max, opts.energy_tol)
     out = periods_diff(L_c, cfg, device, q0[None], *args)

@@ -15,11 +15,11 @@ from .._checks import as_real_array, check_callable, check_devices, positive_int
 from .._results import status_message, SUCCESS
 from .._taylor.solver import Taylor
 from .autodiff import periods_diff
-from .closure import closure_converted
 from .device import Periods
 from .methods import Method
 from .options import check_options
-from .solver import resolve_solver, stepper_of
+from .reuse import canonical_inputs
+from .solver import stepper_of
 
 
 def _lane_order(q0):
@@ -167,10 +167,11 @@ def sweep_periods(
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
     dtype = q0.dtype
-    solver = resolve_solver(solver, L, dtype)
+    # (Keyed on what L computes: a rebuilt L with new parameter values reuses the
+    # program compiled for the first.)
+    L_c, consts, solver = canonical_inputs(L, solver, dtype)
     stepper = stepper_of(solver)
     cfg = Method(stepper, opts.method, chunk_size, opts.max_steps, bool(error_estimate))
-    L_c, consts = closure_converted(L, dtype)
     args = (consts, opts.rtol, opts.atol, opts.t_max, opts.energy_tol)
 
     def run(q, order):
