@@ -440,7 +440,7 @@ def quadrature_period(
     ```python
     L = lagrax.systems.pendulum.lagrangian()
     res = lagrax.quadrature_period(L, jnp.linspace(0.1, 3.0, 30))
-    res.periods  # = lagrax.systems.pendulum_period(...) to ~1e-14
+    res.periods  # lagrax.systems.pendulum.period(jnp.linspace(0.1, 3.0, 30)), to ~1e-14
     ```
     """
     for name, value in (("nodes", nodes), ("inner_nodes", inner_nodes)):
