@@ -54,7 +54,7 @@ from ._results import (
     status_message as status_message,
     status_result as status_result,
 )
-from ._taylor.coefficients import Taylor as Taylor
+from ._taylor.solver import Taylor as Taylor
 from ._trajectory.gauss_legendre import (
     GaussLegendre4 as GaussLegendre4,
     GaussLegendre6 as GaussLegendre6,

@@ -19,7 +19,7 @@ def chart(results, rtol):
     import numpy as np
     from matplotlib import ticker
 
-    from .._period.sweep import PROMISE
+    from .._period.estimate import PROMISE
 
     fig, (top, bottom) = plt.subplots(
         2,
