@@ -153,34 +153,25 @@ def sweep_periods(
     res.periods, res.status, res.useful_fraction
     ```
 
-    **Parameter scans and gradients:** the compiled sweep is cached on the function
-    object `L`, so a new closure for each parameter value
-    (`lagrax.systems.pendulum.lagrangian(g=g)`) compiles again, seconds each. Make
-    the parameters float array fields of an `equinox.Module` instead: they are
-    arguments of the compiled sweep, a new value runs at once, and `jax.grad`
-    differentiates the periods with respect to them.
+    **Parameter scans and gradients:** the compiled sweep is keyed on what `L`
+    computes, with its float constants passed as arguments: a Lagrangian built again
+    for another parameter value (a new closure, or an `equinox.Module` with other
+    field values) runs on the sweep already compiled, and `jax.grad` differentiates
+    the periods with respect to a parameter `L` closes over.
 
     ```python
     import diffrax
-    import equinox as eqx
-
-    class Pendulum(eqx.Module):
-        g: jax.Array  # a parameter: a float array field
-
-        def __call__(self, q, qdot, t):
-            return 0.5 * qdot[0] ** 2 + self.g * jnp.cos(q[0])
 
     q0 = jnp.linspace(0.1, 3.0, 8)
     for g in (1.0, 4.0, 9.0):  # compiled once, for the first g
-        res = lagrax.sweep_periods(Pendulum(jnp.asarray(g)), q0)
+        res = lagrax.sweep_periods(lagrax.systems.pendulum.lagrangian(g=g), q0)
     res.periods[0]  # lagrax.systems.pendulum.period(0.1, g=9.0)
 
     def mean_period(g):  # Dopri8 compiles its derivative faster than Taylor
-        res = lagrax.sweep_periods(Pendulum(g), q0, solver=diffrax.Dopri8())
-        return res.periods.mean()
+        L = lagrax.systems.pendulum.lagrangian(g=g)
+        return lagrax.sweep_periods(L, q0, solver=diffrax.Dopri8()).periods.mean()
 
-    g = jnp.asarray(4.0)
-    jax.grad(mean_period)(g)  # -mean_period(g) / 8, as T ∝ 1/√g
+    jax.grad(mean_period)(4.0)  # -mean_period(4.0) / 8, as T ∝ 1/√g
     ```
     """
     q0 = as_real_array(q0, "q0")
