@@ -89,13 +89,13 @@ def test_the_public_examples_are_found():
     assert {"period", "sweep_periods", "simulate", "accelerations"} <= names
     # The recipe for parameter scans and gradients of a sweep.
     sweeps = [code for name, code in EXAMPLES if "sweep_periods" in name]
-    assert any("eqx.Module" in code and "jax.grad(" in code for code in sweeps)
+    assert any("for g in" in code and "jax.grad(" in code for code in sweeps)
 
 
 def _marks(code):
     # A batch through the period kernel compiles for 10-40 s of CPU: slow. The
-    # parameters-as-arguments and gradient paths the recipe shows are tested in the
-    # default run by tests/test_gradients.py.
+    # rebuilt-L and gradient paths the recipe shows are tested in the default run
+    # (tests/test_canonical.py, tests/test_gradients.py).
     return [pytest.mark.slow] if "sweep_periods(" in code else []
 
 
