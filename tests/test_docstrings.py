@@ -87,9 +87,21 @@ def _claim(comment, namespace):
 def test_the_public_examples_are_found():
     names = {name.split("[")[0].rsplit(".", 1)[-1] for name, _ in EXAMPLES}
     assert {"period", "sweep_periods", "simulate", "accelerations"} <= names
+    # The recipe for parameter scans and gradients of a sweep.
+    sweeps = [code for name, code in EXAMPLES if "sweep_periods" in name]
+    assert any("for g in" in code and "jax.grad(" in code for code in sweeps)
 
 
-@pytest.mark.parametrize("code", [c for _, c in EXAMPLES], ids=[n for n, _ in EXAMPLES])
+def _marks(code):
+    # A batch through the period kernel compiles for 10-40 s of CPU: slow. The
+    # rebuilt-L and gradient paths the recipe shows are tested in the default run
+    # (tests/test_canonical.py, tests/test_gradients.py).
+    return [pytest.mark.slow] if "sweep_periods(" in code else []
+
+
+@pytest.mark.parametrize(
+    "code", [pytest.param(c, marks=_marks(c), id=n) for n, c in EXAMPLES]
+)
 def test_docstring_example(code):
     code = textwrap.dedent(code)
     comments = {
