@@ -8,7 +8,7 @@ from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array, Float, Int
 
 from .._results import SUCCESS, TOLERANCE_NOT_MET
-from .estimate import _LOOSER, PROMISE, second_solve_estimate
+from .estimate import LOOSER, PROMISE, second_solve_estimate
 from .finish import blame_coordinates
 from .methods import run_method
 
@@ -81,8 +81,8 @@ def device_periods(L, m, q0, consts, rtol, atol, t_max, energy_tol) -> Periods:
         est = jnp.where(out.redo, est2, out.bound)
     elif m.estimate:
         lanes = jnp.concatenate([q0, q0])
-        rtols = jnp.concatenate([full(rtol, 1.0), full(rtol, _LOOSER)])
-        atols = jnp.concatenate([full(atol, 1.0), full(atol, _LOOSER)])
+        rtols = jnp.concatenate([full(rtol, 1.0), full(rtol, LOOSER)])
+        atols = jnp.concatenate([full(atol, 1.0), full(atol, LOOSER)])
         shift = jnp.concatenate([jnp.zeros(n, q0.dtype), jnp.ones(n, q0.dtype)])
         out = solve(lanes, rtols, atols, shift)
         T, T2 = out.periods[:n], out.periods[n:]

@@ -7,7 +7,7 @@ energy error, which moves the end of the leg by its leverage $\int ds/\dot q^2$ 
 the rest of it (Gauss–Legendre on the step's velocity polynomial); and the far
 turning point's band times $d\tau/dE$, the finite part of that integral from rest.
 Lanes it cannot vouch for, and every other method and stepper, are solved a second
-time at `_LOOSER` times the tolerances (`second_solve_estimate`).
+time at `LOOSER` times the tolerances (`second_solve_estimate`).
 """
 
 import equinox as eqx
@@ -20,10 +20,10 @@ from .._results import SUCCESS
 from .._stepper.base import horner
 
 
-# The second solve: at `_LOOSER` times the tolerances (for "matched", from the far
+# The second solve: at `LOOSER` times the tolerances (for "matched", from the far
 # turning point moved across its rounding band), and `_SAFETY` times the difference.
 # Calibrated on exact periods (tests/test_estimate.py).
-_LOOSER = 10.0
+LOOSER = 10.0
 _SAFETY = 3.0
 #: A lane's period is trusted when its estimate is below this many times rtol.
 PROMISE = 100.0

@@ -20,7 +20,7 @@ from .._results import (
 )
 from .._stepper.base import AbstractStepper
 from .._stepper.taylor import TaylorStepper
-from .estimate import _LOOSER, needs_second_solve, screen
+from .estimate import LOOSER, needs_second_solve, screen
 from .events import MAX_SPEED, POSITION, TURNING
 from .far_turning_point import far_turning_point
 from .kernel import Lanes, PassResult, run_pass
@@ -159,7 +159,7 @@ def run_method(
     "matched", how many rounding bands to move each far turning point.
 
     `screened` ("matched" with a Taylor step and the error estimate): the first-order
-    error bound of each lane (`estimate.screen`), and a second solve, at `_LOOSER`
+    error bound of each lane (`estimate.screen`), and a second solve, at `LOOSER`
     times the tolerances from the far turning point moved across its band, of only
     the lanes that bound cannot vouch for, in the same loop."""
     zeros = jnp.zeros_like(q0)
@@ -258,8 +258,8 @@ def _second_round(lanes0: Lanes, status, bound) -> tuple[Lanes, Array, Array]:
         jnp.where(live, sg(q0)[perm], jnp.nan),
         lanes0.target,
         _kinds(q0, MAX_SPEED),
-        _LOOSER * rtols[perm],
-        _LOOSER * atols[perm],
+        LOOSER * rtols[perm],
+        LOOSER * atols[perm],
         live,
     )
     return lanes, pos, count
