@@ -12,21 +12,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .._jaxpr.fusion import one_fusion
-from .._jaxpr.trig import vectorized_trig
+from .mechanics import mechanics
 
 
 # Safeguarded Newton converges in ~5 iterations from the bracket; the loop stops when
 # every lane has converged.
 _MAX_NEWTON = 60
 _MAX_EXPAND = 40
-
-
-def at_rest(L, consts, dtype):
-    """q -> L(q, 0, 0) for a scalar q, with sines and cosines XLA vectorizes
-    (`vectorized_trig`; each a libm call per lane otherwise): for the turning-point
-    searches and tests, which evaluate it many times per lane."""
-    z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
-    return vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
 
 
 class FarTurningPoint(eqx.Module):
@@ -49,20 +41,24 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     eps = jnp.finfo(dtype).eps
     # ~20 values of L and its slope per lane. Beyond the vectorized sines' range
     # (|argument| > 8.2e5) they are NaN: `in_range` says where L at q0 was finite.
-    Lr = at_rest(L, consts, dtype)
-    Lr_v = jax.vmap(Lr)
-    dF = jax.vmap(jax.grad(Lr))
+    # (Values at several points, and a value with its slope, each from one call:
+    # on the tape path each call is an interpreter in the program.)
+    mech = mechanics(L, consts)
+    Lr_v = mech.rest_lanes(dtype)
+    both = mech.rest_lanes_with_slope(dtype)
+    dF = lambda q: both(q)[1]
+    d = q_m - q0
+    out = jnp.sign(d)  # away from the release point
+    # The mirror image of q0: the root itself if the well is mirror-symmetric, up
+    # to rounding.
+    a, b = q_m, q_m + d
     # Each value of L is computed once and carried (for the pendulum each is a libm
     # call per lane, otherwise recomputed for F, its rounding and each loop's test).
-    E0 = Lr_v(q0)
+    E0, La, Lb = Lr_v(jnp.stack([q0, a, b]))
+    Fa, Fb = La - E0, Lb - E0
     # F = L(q) - L(q0) is known only to the rounding of the two values of L: inside
     # that band every point is the turning point as far as float64 can tell.
     noise = lambda Lq: 4 * eps * (jnp.abs(Lq) + jnp.abs(E0))
-    d = q_m - q0
-    out = jnp.sign(d)  # away from the release point
-    a, b = q_m, q_m + d  # the mirror image of q0: the root itself if the well is
-    La, Lb = Lr_v(a), Lr_v(b)  # mirror-symmetric, up to rounding
-    Fa, Fb = La - E0, Lb - E0
 
     def expand(c):
         # Still inside the well at b: step outward by a Newton step times 1, 2, 4, …
@@ -99,11 +95,11 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
 
     def newton(c):
         a, b, x, done, k = c
-        Lx = Lr_v(x)
+        Lx, dLx = both(x)
         fx = Lx - E0
         done = done | (jnp.abs(fx) <= noise(Lx))
         a, b = jnp.where(fx > 0, x, a), jnp.where(fx > 0, b, x)
-        x_new = x - fx / dF(x)
+        x_new = x - fx / dLx
         ok = jnp.isfinite(x_new) & ((x_new - a) * (x_new - b) < 0)
         x_new = jnp.where(ok, x_new, 0.5 * (a + b))
         done = done | (jnp.abs(x_new - x) <= 2 * eps * jnp.abs(x))
@@ -118,8 +114,8 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     )
     # The tangent of the root by the implicit function theorem (zero primal).
     # (At the root F = 0: the slope's own tangent multiplies F and is dropped.)
-    slope = jax.lax.stop_gradient(dF(x))
-    Lx = Lr_v(x)
+    Lx, slope = both(x)
+    slope = jax.lax.stop_gradient(slope)
     f0 = Lx - E0
     corr = -f0 / slope
     corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
@@ -133,9 +129,10 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     # the tangent line.
     h = 64 * eps * jnp.maximum(jnp.abs(x), eps)
     scatter = jnp.zeros_like(x)
-    for j in (-4, -3, -2, -1, 1, 2, 3, 4):
-        fj = Lr_v(x + j * h) - E0
-        scatter = jnp.maximum(scatter, jnp.abs(fj - f0 - slope * j * h))
+    js = (-4, -3, -2, -1, 1, 2, 3, 4)
+    Ls = Lr_v(jnp.stack([x + j * h for j in js]))
+    for j, Lj in zip(js, Ls):
+        scatter = jnp.maximum(scatter, jnp.abs(Lj - E0 - f0 - slope * j * h))
     half_ulp = 0.5 * eps * jnp.maximum(jnp.abs(Lx), jnp.abs(E0))
     band = (scatter + half_ulp) / jnp.abs(slope)
     return FarTurningPoint(root, found, band, in_range)
