@@ -536,6 +536,14 @@ def _coordinates_read(L, dtype, most: int = 6):
     return None
 
 
+class CoordinatesError(ValueError):
+    """A Lagrangian of `coordinates` coordinates where one was expected."""
+
+    def __init__(self, message: str, coordinates: int):
+        super().__init__(message)
+        self.coordinates = coordinates
+
+
 def check_one_dof(L, dtype):
     """`L` is a Lagrangian of one coordinate (`q` of shape `(1,)`) in `dtype`."""
     dtype = jnp.dtype(dtype)
@@ -557,10 +565,11 @@ def check_one_dof(L, dtype):
         n = _coordinates_read(L, dtype)
         if n is None:
             raise
-        raise ValueError(
+        raise CoordinatesError(
             "`L` must be a Lagrangian of one coordinate, q of shape (1,); it has "
             f"{n} coordinates (L(q, qdot, t) runs with q and qdot of shape ({n},)); "
-            f"for more coordinates use lagrax.simulate. At shape (1,): {e}"
+            f"for more coordinates use lagrax.simulate. At shape (1,): {e}",
+            n,
         ) from None
     try:
         _ONE_DOF_OK.setdefault(L, set()).add(dtype)

@@ -249,8 +249,8 @@ def test_a_system_is_swept_as_its_sweep_spec_says(monkeypatch):
 
 
 def test_a_lagrangian_summed_over_its_coordinates_is_of_one_coordinate():
-    # It runs at every shape: one coordinate when given one (the command line once
-    # counted the widest shape it accepted and refused it).
+    # It runs at every shape: one coordinate when given one, whatever the widest
+    # shape it accepts.
     L = lambda q, qdot, t: 0.5 * np.sum(qdot**2) - 0.5 * np.sum(q**2)
     targets.check_one_dof(targets.Target("mine:L", L))
     unpacked = lambda q, qdot, t: (lambda a, b: a * b)(*q) + qdot @ qdot

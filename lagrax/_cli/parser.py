@@ -12,7 +12,12 @@ DEFAULT_TARGETS = "both"  # the built-ins whose `SWEEP` says `default=True`
 
 
 class UsageError(Exception):
-    """Bad arguments or unusable files: one line on stderr, exit 2."""
+    """Bad arguments or unusable files: one line on stderr, exit 2. `coordinates`:
+    how many coordinates a Lagrangian has, where that is what is wrong."""
+
+    def __init__(self, message: str, *, coordinates: int | None = None):
+        super().__init__(message)
+        self.coordinates = coordinates
 
 
 class _Parser(argparse.ArgumentParser):

@@ -277,20 +277,20 @@ def check_one_dof(target):
     worded for the command line where it counts the coordinates."""
     import numpy as np
 
-    from .._checks import check_one_dof as check
+    from .._checks import check_one_dof as check, CoordinatesError
 
     what = f"TARGET {target.name!r}" if ":" in target.name else target.name
     try:
         check(target.L, np.float64)
-    except (TypeError, ValueError) as e:
-        m = re.search(r"it has (\d+) coordinates", str(e))
-        if m is None:
-            raise UsageError(f"{what}: {e}") from None
-        n = m.group(1)
+    except CoordinatesError as e:
+        n = e.coordinates
         raise UsageError(
             f"{what} has {n} coordinates (q of shape ({n},)); lagrax sweep needs a "
-            "Lagrangian of one coordinate"
+            "Lagrangian of one coordinate",
+            coordinates=n,
         ) from None
+    except (TypeError, ValueError) as e:
+        raise UsageError(f"{what}: {e}") from None
 
 
 # ------------------------------------------------------------------------------
@@ -449,9 +449,8 @@ def systems_lines():
             check_one_dof(target)
         except UsageError as e:
             text = str(e)
-            m = re.search(r"has (\d+) coordinates", text)
-            if m:
-                notes.append(f"{m.group(1)} coordinates: not for lagrax sweep")
+            if e.coordinates is not None:
+                notes.append(f"{e.coordinates} coordinates: not for lagrax sweep")
             elif "needs the parameter" in text:
                 notes.append("needs a function argument: sweep it as module:attr")
             else:

@@ -213,7 +213,8 @@ def mass_matrix(
     **Example:** for the pendulum $L = \frac12 r^2\dot\theta^2 + gr\cos\theta$,
 
     ```python
-    lagrax.mass_matrix(L, jnp.array([0.3]), jnp.array([0.0]))  # [[r**2]]
+    L = lagrax.systems.pendulum.lagrangian(r=2.0)
+    lagrax.mass_matrix(L, jnp.array([0.3]), jnp.array([0.0]))  # [[4.0]], m r² (m = 1)
     ```
 
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
@@ -262,8 +263,14 @@ def energy(
     **Example:** conservation along a trajectory,
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
+    q0, qdot0 = jnp.array([1.0]), jnp.array([0.0])
+    ts = jnp.linspace(0.0, 10.0, 101)
     sol = lagrax.simulate(L, q0, qdot0, 0.0, 10.0, saveat=diffrax.SaveAt(ts=ts))
     h = jax.vmap(lambda q, v: lagrax.energy(L, q, v))(*sol.ys)
+    h[0]  # -cos(1.0), the energy at release (conserved to about rtol after)
     ```
 
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.

@@ -212,20 +212,17 @@ def _mul(a, b):
     return _bind(jax.lax.mul_p, (a, b), {})
 
 
-def _sum(values):
-    values = list(values)
-    total = values[0]
-    for v in values[1:]:
-        total = _add(total, v)
-    return total
-
-
 def _fold(f, values):
+    """`f` applied left to right: `f(f(v0, v1), v2)`..."""
     values = list(values)
     acc = values[0]
     for v in values[1:]:
         acc = f(acc, v)
     return acc
+
+
+def _sum(values):
+    return _fold(_add, values)
 
 
 def _to_end(x, axes):

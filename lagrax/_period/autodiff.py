@@ -28,37 +28,14 @@ def _periods_jvp(L, m, devices, primals, tangents):
     periods_of = lambda q0, consts: periods(
         L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
     )
-    # Lanes are independent: dT_i/dq0_j is diagonal, one forward pass for all of it;
-    # each scalar parameter L closes over takes one more forward pass. Only for the
-    # inputs whose tangent is not a symbolic zero (`symbolic_zeros=True`): the
-    # derivative with respect to q0 alone of a Lagrangian with many parameters is
-    # one forward pass, not one per parameter.
     leaves, treedef = jax.tree.flatten(consts)
     dleaves = treedef.flatten_up_to(dconsts)
     inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in leaves]
     wanted = [ok and not _is_zero(dx) for ok, dx in zip(inexact, dleaves)]
-    no_consts = [jnp.zeros_like(x) for x in leaves]
-    directions = [] if _is_zero(dq0) else [(jnp.ones_like(q0), no_consts)]
-    for i, (x, ok) in enumerate(zip(leaves, wanted)):
-        if not ok:
-            continue
-        for j in range(int(np.size(x))):
-            basis = list(no_consts)
-            # (A leaf may be a Python scalar with a dtype, `TypedFloat`: no `.shape`.)
-            e = jnp.zeros(np.size(x), jnp.result_type(x)).at[j].set(1)
-            basis[i] = e.reshape(np.shape(x))
-            directions.append((jnp.zeros_like(q0), basis))
-    int_tangent = lambda y: np.zeros(np.shape(y), jax.dtypes.float0)
-    tangents_of = lambda out, dT: Periods(
-        dT,
-        int_tangent(out.status),
-        int_tangent(out.steps),
-        int_tangent(out.executed),
-        jnp.zeros_like(out.estimate),
-    )
+    directions = _directions(q0, dq0, leaves, wanted)
     if not directions:  # (every tangent a symbolic zero)
         out = periods_of(q0, consts)
-        return out, tangents_of(out, jnp.zeros_like(out.periods))
+        return out, _tangents(out, jnp.zeros_like(out.periods))
     dq_dirs = jnp.stack([d[0] for d in directions])
     dc_dirs = [jnp.stack([d[1][k] for d in directions]) for k in range(len(leaves))]
 
@@ -83,7 +60,39 @@ def _periods_jvp(L, m, devices, primals, tangents):
         size = int(np.size(x))
         dT = dT + jnp.tensordot(jnp.reshape(dx, (-1,)), jac[k : k + size], axes=1)
         k += size
-    return out, tangents_of(out, dT)
+    return out, _tangents(out, dT)
+
+
+def _directions(q0, dq0, leaves, wanted):
+    """The forward passes to run, as `(dq0, dconsts)` tangent directions. Lanes are
+    independent: dT_i/dq0_j is diagonal, one pass for all of it; each scalar
+    parameter L closes over takes one more. Only for the inputs whose tangent is not
+    a symbolic zero (`symbolic_zeros=True`): the derivative with respect to q0 alone
+    of a Lagrangian with many parameters is one pass, not one per parameter."""
+    no_consts = [jnp.zeros_like(x) for x in leaves]
+    directions = [] if _is_zero(dq0) else [(jnp.ones_like(q0), no_consts)]
+    for i, (x, ok) in enumerate(zip(leaves, wanted)):
+        if not ok:
+            continue
+        for j in range(int(np.size(x))):
+            basis = list(no_consts)
+            # (A leaf may be a Python scalar with a dtype, `TypedFloat`: no `.shape`.)
+            e = jnp.zeros(np.size(x), jnp.result_type(x)).at[j].set(1)
+            basis[i] = e.reshape(np.shape(x))
+            directions.append((jnp.zeros_like(q0), basis))
+    return directions
+
+
+def _tangents(out: Periods, dT) -> Periods:
+    """The tangents of `periods`' outputs: `dT` for the periods, none for the rest."""
+    int_tangent = lambda y: np.zeros(np.shape(y), jax.dtypes.float0)
+    return Periods(
+        dT,
+        int_tangent(out.status),
+        int_tangent(out.steps),
+        int_tangent(out.executed),
+        jnp.zeros_like(out.estimate),
+    )
 
 
 periods_diff.defjvp(_periods_jvp, symbolic_zeros=True)

@@ -171,14 +171,9 @@ class Found(eqx.Module):
 
 def search(event, base, old: Search, step: StepResult, g1, accept, finite, located):
     """One iteration of the event search on every lane: whether the step crossed the
-    event or located it, the bracket, and the next trial (σq̈ = 0: secant through the
-    two latest trials; σq̇ = 0 or σ(x_t - x) = 0: Newton, whose derivative, σq̈ or
-    -σq̇ at the trial's end, is at hand; both kept inside the bracket).
-    `base`: the lanes' `(s, x, v, a)`; `located`: an `InStep`, or None."""
-    s, x, v, a = base
-    h, v1, a1, xt = step.h, step.v, step.a, event.xt
-    eps = jnp.finfo(h.dtype).eps
-    locating = old.locating
+    event or located it, the bracket, and the next trial. `base`: the lanes'
+    `(s, x, v, a)`; `located`: an `InStep`, or None."""
+    locating, h = old.locating, step.h
     crossed = accept & (g1 <= 0) & ~locating
     if located is not None:  # (x1, v1, a1, h are the event's there)
         crossed = crossed | located.inside
@@ -189,40 +184,11 @@ def search(event, base, old: Search, step: StepResult, g1, accept, finite, locat
     hi = jnp.where(locating & ~pos, h, old.hi)
     ghi = jnp.where(locating & ~pos, g1, old.ghi)
     lo = jnp.where(crossed, 0.0, lo)
-    glo = jnp.where(crossed, event.value(x, v, a), glo)
+    glo = jnp.where(crossed, event.value(*base[1:]), glo)
     hi = jnp.where(crossed, h, hi)
     ghi = jnp.where(crossed, g1, ghi)
-    hp = jnp.where(crossed, 0.0, old.hp)
-    gp = jnp.where(crossed, glo, old.gp)
-    denom = g1 - gp
-    secant = h - g1 * (h - hp) / jnp.where(denom != 0, denom, 1.0)
-    dg = event.slope(v1, a1)
-    newton = h - g1 / jnp.where(dg != 0, dg, 1.0)
-    guess = jnp.where(event.kind == MAX_SPEED, secant, newton)
-    inside = (guess > lo) & (guess < hi) & jnp.isfinite(guess)
-    guess = jnp.where(inside, guess, 0.5 * (lo + hi))
-    if located is not None:  # not located inside the step: its estimate first
-        te = located.t
-        guess = jnp.where(crossed & (te > lo) & (te < hi), te, guess)
-    conv_tol = 4 * eps * jnp.maximum(jnp.abs(s + h), 1.0)
-    # The event value is known only to its rounding: for σq̇ that of q̇ + hΣb q̈
-    # (Newton otherwise stalls there on a few lanes); for σq̈, that of q̈, whose
-    # scale is 1 in the lane's units.
-    g_scale = jnp.where(
-        event.kind == MAX_SPEED,
-        1.0,
-        jnp.where(
-            event.kind == TURNING,
-            jnp.abs(v) + 4 * jnp.abs(h * a1),
-            jnp.abs(x) + jnp.abs(xt) + 4 * jnp.abs(h * v1),
-        ),
-    )
-    g_noise = 8 * eps * g_scale
-    converged = (
-        (locating | crossed)
-        & finite
-        & ((jnp.abs(guess - h) <= conv_tol) | (jnp.abs(g1) <= g_noise))
-    )
+    guess = _next_trial(event, old, step, g1, crossed, lo, hi, glo, located)
+    converged = _converged(event, base, step, g1, locating | crossed, guess, finite)
     converged = converged & ((step.error <= 10.0) | crossed)
     if located is not None:
         converged = converged | located.inside
@@ -233,4 +199,50 @@ def search(event, base, old: Search, step: StepResult, g1, accept, finite, locat
     bracket = (lo, hi, glo, ghi)
     return Found(
         crossed, advance, converged, gave_up, new_locating, guess, bracket, tries
+    )
+
+
+def _next_trial(event, old: Search, step, g1, crossed, lo, hi, glo, located):
+    """The next trial's step length: σq̈ = 0, the secant through the two latest
+    trials; σq̇ = 0 or σ(x_t - x) = 0, Newton, whose derivative (σq̈ or -σq̇ at the
+    trial's end) is at hand; both kept inside the bracket. After a crossing, the
+    event's location inside the step first (where it was not good enough)."""
+    h = step.h
+    hp = jnp.where(crossed, 0.0, old.hp)
+    gp = jnp.where(crossed, glo, old.gp)
+    denom = g1 - gp
+    secant = h - g1 * (h - hp) / jnp.where(denom != 0, denom, 1.0)
+    dg = event.slope(step.v, step.a)
+    newton = h - g1 / jnp.where(dg != 0, dg, 1.0)
+    guess = jnp.where(event.kind == MAX_SPEED, secant, newton)
+    inside = (guess > lo) & (guess < hi) & jnp.isfinite(guess)
+    guess = jnp.where(inside, guess, 0.5 * (lo + hi))
+    if located is not None:
+        te = located.t
+        guess = jnp.where(crossed & (te > lo) & (te < hi), te, guess)
+    return guess
+
+
+def _converged(event, base, step, g1, trial, guess, finite):
+    """Lanes whose trial located the event: the next trial would move by rounding,
+    or the event value is at its rounding."""
+    s, x, v, _ = base
+    h, v1, a1 = step.h, step.v, step.a
+    eps = jnp.finfo(h.dtype).eps
+    conv_tol = 4 * eps * jnp.maximum(jnp.abs(s + h), 1.0)
+    # The event value is known only to its rounding: for σq̇ that of q̇ + hΣb q̈
+    # (Newton otherwise stalls there on a few lanes); for σq̈, that of q̈, whose
+    # scale is 1 in the lane's units.
+    g_scale = jnp.where(
+        event.kind == MAX_SPEED,
+        1.0,
+        jnp.where(
+            event.kind == TURNING,
+            jnp.abs(v) + 4 * jnp.abs(h * a1),
+            jnp.abs(x) + jnp.abs(event.xt) + 4 * jnp.abs(h * v1),
+        ),
+    )
+    g_noise = 8 * eps * g_scale
+    return (
+        trial & finite & ((jnp.abs(guess - h) <= conv_tol) | (jnp.abs(g1) <= g_noise))
     )

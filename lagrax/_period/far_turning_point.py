@@ -35,8 +35,8 @@ class FarTurningPoint(eqx.Module):
 @eqx.filter_jit
 def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     r"""The root of $F(q) = L(q, 0) - L(q_0, 0)$ beyond $q_m$: bracketed from the
-    mirror image of $q_0$ outward by growing Newton steps, then safeguarded Newton;
-    its tangent by the implicit function theorem."""
+    mirror image of $q_0$ outward, then safeguarded Newton; its tangent by the
+    implicit function theorem."""
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
     # ~20 values of L and its slope per lane. Beyond the vectorized sines' range
@@ -47,23 +47,47 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     Lr_v = mech.rest_lanes(dtype)
     both = mech.rest_lanes_with_slope(dtype)
     dF = lambda q: both(q)[1]
-    d = q_m - q0
-    out = jnp.sign(d)  # away from the release point
-    # The mirror image of q0: the root itself if the well is mirror-symmetric, up
-    # to rounding.
-    a, b = q_m, q_m + d
     # Each value of L is computed once and carried (for the pendulum each is a libm
     # call per lane, otherwise recomputed for F, its rounding and each loop's test).
-    E0, La, Lb = Lr_v(jnp.stack([q0, a, b]))
-    Fa, Fb = La - E0, Lb - E0
+    E0 = Lr_v(q0)
     # F = L(q) - L(q0) is known only to the rounding of the two values of L: inside
     # that band every point is the turning point as far as float64 can tell.
     noise = lambda Lq: 4 * eps * (jnp.abs(Lq) + jnp.abs(E0))
+    a, b, Fa, Fb, Lb = _bracket(Lr_v, dF, noise, E0, q0, q_m)
+    at_b = jnp.abs(Fb) <= noise(Lb)  # e.g. the mirror image, in a symmetric well
+    found = ((Fb <= 0) | at_b) & (Fa > 0) & jnp.isfinite(a) & jnp.isfinite(b)
+    secant = a + (b - a) * Fa / jnp.where(Fa != Fb, Fa - Fb, 1.0)
+    x = jnp.where(found, jnp.where(at_b, b, secant), q0)
+    x = _newton(both, noise, E0, a, b, x, found, at_b)
+    # The tangent of the root by the implicit function theorem (zero primal).
+    # (At the root F = 0: the slope's own tangent multiplies F and is dropped.)
+    Lx, slope = both(x)
+    slope = jax.lax.stop_gradient(slope)
+    f0 = Lx - E0
+    corr = -f0 / slope
+    corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
+    root = x + (corr - jax.lax.stop_gradient(corr))
+    in_range = jnp.isfinite(E0)
+    if not with_band:
+        return FarTurningPoint(root, found, jnp.zeros_like(x), in_range)
+    band = _band(Lr_v, E0, x, Lx, f0, slope)
+    return FarTurningPoint(root, found, band, in_range)
+
+
+def _bracket(Lr_v, dF, noise, E0, q0, q_m):
+    """`(a, b, F(a), F(b), L(b))` with F(a) > 0 >= F(b) (where found): from the mirror
+    image of q0 (the root itself if the well is mirror-symmetric, up to rounding)
+    outward by a Newton step times 1, 2, 4, … (for a convex F Newton undershoots),
+    never less than a few ulps, and by |d| times the same factor where F does not
+    fall outward (a shoulder)."""
+    eps = jnp.finfo(q0.dtype).eps
+    d = q_m - q0
+    out = jnp.sign(d)  # away from the release point
+    a, b = q_m, q_m + d
+    La, Lb = Lr_v(jnp.stack([a, b]))
+    Fa, Fb = La - E0, Lb - E0
 
     def expand(c):
-        # Still inside the well at b: step outward by a Newton step times 1, 2, 4, …
-        # (for a convex F Newton undershoots), never less than a few ulps, and by
-        # |d| times the same factor where F does not fall outward (a shoulder).
         a, b, Fa, Fb, Lb, k = c
         more = Fb > noise(Lb)
         slope = -out * dF(b)
@@ -88,10 +112,12 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
         expand,
         (a, b, Fa, Fb, Lb, 0),
     )
-    at_b = jnp.abs(Fb) <= noise(Lb)  # e.g. the mirror image, in a symmetric well
-    found = ((Fb <= 0) | at_b) & (Fa > 0) & jnp.isfinite(a) & jnp.isfinite(b)
-    secant = a + (b - a) * Fa / jnp.where(Fa != Fb, Fa - Fb, 1.0)
-    x = jnp.where(found, jnp.where(at_b, b, secant), q0)
+    return a, b, Fa, Fb, Lb
+
+
+def _newton(both, noise, E0, a, b, x, found, at_b):
+    """Safeguarded Newton from `x` inside the bracket `[a, b]`, to the rounding of F."""
+    eps = jnp.finfo(x.dtype).eps
 
     def newton(c):
         a, b, x, done, k = c
@@ -112,27 +138,19 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
         newton,
         (a, b, x, ~found | at_b, 0),
     )
-    # The tangent of the root by the implicit function theorem (zero primal).
-    # (At the root F = 0: the slope's own tangent multiplies F and is dropped.)
-    Lx, slope = both(x)
-    slope = jax.lax.stop_gradient(slope)
-    f0 = Lx - E0
-    corr = -f0 / slope
-    corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
-    root = x + (corr - jax.lax.stop_gradient(corr))
-    in_range = jnp.isfinite(E0)
-    if not with_band:
-        return FarTurningPoint(root, found, jnp.zeros_like(x), in_range)
-    # How far the root is undetermined: the rounding scatter of F near the root,
-    # measured (the user's L may round by many ulps, or by half of one), over its
-    # slope. Nine values of F spaced 64 ulps apart (the middle one is f0), against
-    # the tangent line.
+    return x
+
+
+def _band(Lr_v, E0, x, Lx, f0, slope):
+    """How far the root is undetermined: the rounding scatter of F near the root,
+    measured (the user's L may round by many ulps, or by half of one), over its
+    slope. Nine values of F spaced 64 ulps apart (the middle one is f0), against the
+    tangent line."""
+    eps = jnp.finfo(x.dtype).eps
     h = 64 * eps * jnp.maximum(jnp.abs(x), eps)
     scatter = jnp.zeros_like(x)
     js = (-4, -3, -2, -1, 1, 2, 3, 4)
-    Ls = Lr_v(jnp.stack([x + j * h for j in js]))
-    for j, Lj in zip(js, Ls):
+    for j, Lj in zip(js, Lr_v(jnp.stack([x + j * h for j in js]))):
         scatter = jnp.maximum(scatter, jnp.abs(Lj - E0 - f0 - slope * j * h))
     half_ulp = 0.5 * eps * jnp.maximum(jnp.abs(Lx), jnp.abs(E0))
-    band = (scatter + half_ulp) / jnp.abs(slope)
-    return FarTurningPoint(root, found, band, in_range)
+    return (scatter + half_ulp) / jnp.abs(slope)

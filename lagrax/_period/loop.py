@@ -52,11 +52,9 @@ def _accelerations(L, consts):
     return mech.scalar_accel(), mech.lane_field_accel()
 
 
-def _queue(
-    cfg, stepper, controller, rel, q0s, targets, kinds, rtols, atols, t_max, n_live
-):
+def _queue(cfg, controller, rel, q0s, targets, kinds, rtols, atols, t_max, n_live):
     """The queue of one pass: each amplitude's constants (`Queue.build`)."""
-    dtype = q0s.dtype
+    dtype, stepper = q0s.dtype, cfg.stepper
     valid, Qs, tau = rel.valid, rel.Qs, rel.tau
     columns = {  # name: (its value per amplitude, its value on an idle lane)
         "q0": (q0s, 1.0),
@@ -92,9 +90,8 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
     # Each amplitude's release quantities, once for the whole queue (in the refill
     # they would be computed again for every lane).
     rel = lane_scales(L, q0s, consts)
-    queue = _queue(
-        cfg, stepper, controller, rel, q0s, targets, kinds, rtols, atols, t_max, n_live
-    )
+    per_amplitude = (q0s, targets, kinds, rtols, atols, t_max)
+    queue = _queue(cfg, controller, rel, *per_amplitude, n_live)
 
     def body(carry):
         lane, out, state = carry

@@ -325,6 +325,12 @@ def _matched_screened(solve: _Solve, lanes0: Lanes, rtols, atols) -> MethodResul
     _, _, _, _, (rounds, ex), pos, passes = jax.lax.while_loop(
         lambda c: c[0] < c[-1], body, init
     )
+    return _unpack_rounds(rounds, ex, pos, passes, rtols)
+
+
+def _unpack_rounds(rounds, ex, pos, passes, rtols) -> MethodResult:
+    """The first round's results, with the second round's (back in lane order) where
+    the bound could not vouch for a lane."""
     i32 = lambda x: x.astype(jnp.int32)
     T, status, steps, q_far, bound = rounds[0]
     status, steps = i32(status), i32(steps)

@@ -172,7 +172,7 @@ def period(
 
     ```python
     L = lagrax.systems.pendulum.lagrangian()
-    lagrax.period(L, 1.0)  # 6.6986..., = pendulum_period(1.0)
+    lagrax.period(L, 1.0)  # 6.69997566..., = lagrax.systems.pendulum.period(1.0)
     ```
     """
     q0 = as_real_array(q0, "q0")

@@ -155,6 +155,27 @@ def sweep_periods(
     res = lagrax.sweep_periods(L, jnp.linspace(0.01, 3.1, 4096))
     res.periods, res.status, res.useful_fraction
     ```
+
+    **Parameter scans and gradients:** the compiled sweep is keyed on what `L`
+    computes, with its float constants passed as arguments: a Lagrangian built again
+    for another parameter value (a new closure, or an `equinox.Module` with other
+    field values) runs on the sweep already compiled, and `jax.grad` differentiates
+    the periods with respect to a parameter `L` closes over.
+
+    ```python
+    import diffrax
+
+    q0 = jnp.linspace(0.1, 3.0, 8)
+    for g in (1.0, 4.0, 9.0):  # compiled once, for the first g
+        res = lagrax.sweep_periods(lagrax.systems.pendulum.lagrangian(g=g), q0)
+    res.periods[0]  # lagrax.systems.pendulum.period(0.1, g=9.0)
+
+    def mean_period(g):  # Dopri8 compiles its derivative faster than Taylor
+        L = lagrax.systems.pendulum.lagrangian(g=g)
+        return lagrax.sweep_periods(L, q0, solver=diffrax.Dopri8()).periods.mean()
+
+    jax.grad(mean_period)(4.0)  # -mean_period(4.0) / 8, as T ∝ 1/√g
+    ```
     """
     q0 = as_real_array(q0, "q0")
     if q0.ndim != 1 or q0.shape[0] == 0:

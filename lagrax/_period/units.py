@@ -45,18 +45,8 @@ def _release(mech, q0) -> Release:
     valid = finite & start_ok & moving
     Qs = jnp.where(q0 != 0, jnp.abs(q0), 1.0)
     a0s = jnp.where(valid, a0, -1.0)
-    return Release(
-        q0=q0,
-        finite=finite,
-        start_ok=start_ok,
-        moving=moving,
-        valid=valid,
-        M0=M0,
-        a0s=a0s,
-        Qs=Qs,
-        tau=jnp.sqrt(Qs / jnp.abs(a0s)),
-        sigma=jnp.sign(a0s),
-    )
+    tau = jnp.sqrt(Qs / jnp.abs(a0s))
+    return Release(q0, finite, start_ok, moving, valid, M0, a0s, Qs, tau, jnp.sign(a0s))
 
 
 def lane_scales(L, q0, consts) -> Release:

@@ -144,17 +144,20 @@ class AbstractStepper(eqx.Module):
         it, dense output at requested times, error-bound terms) goes in `within`, so
         that it shares the step's one fusion: on a CPU XLA would otherwise compute
         the step's stages or recurrence again for each reader.
+
+    How loops use it: the period loop (`lagrax/_period/loop.py`) steps, asks
+    `IController.adapt` for the next length, and locates its event inside the step
+    (`within`, from `raw.expansion`) or by trial steps of a given length (lanes not
+    `free`). A trajectory loop caps each free step at its end time (`cap`) and reads
+    the states at requested times that fall inside the step from
+    `raw.expansion.at(tau)` in `within`; with a stepper without polynomials it ends
+    its steps at those times instead (`h`). A Taylor stepper whose coefficients come
+    from elsewhere (a tape) overrides `TaylorStepper.coefficients` and keeps the
+    rest of the step.
     """
 
-    @property
-    @abc.abstractmethod
-    def error_order(self) -> float:
-        """The order of the step's error, for the step-size controller."""
-
-    @property
-    @abc.abstractmethod
-    def rejects(self) -> bool:
-        """Whether a step may be rejected (else its length is chosen beforehand)."""
+    error_order: eqx.AbstractVar[float]
+    rejects: eqx.AbstractClassVar[bool]
 
     @abc.abstractmethod
     def step(

@@ -9,6 +9,7 @@ would otherwise keep every stage a kernel of its own.
 """
 
 import functools
+from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
@@ -52,15 +53,8 @@ class RungeKuttaStepper(AbstractStepper):
     e: tuple[float, ...] = eqx.field(static=True)
     c: tuple[float, ...] = eqx.field(static=True)
     fsal: bool = eqx.field(static=True)
-    order: float = eqx.field(static=True)
-
-    @property
-    def error_order(self):
-        return self.order
-
-    @property
-    def rejects(self):
-        return True
+    error_order: float = eqx.field(static=True)
+    rejects: ClassVar[bool] = True
 
     @staticmethod
     def of(solver) -> "RungeKuttaStepper | None":

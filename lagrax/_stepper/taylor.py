@@ -7,6 +7,8 @@ reads from its polynomials (`within`), leave through ONE fusion (`one_fusion`): 
 on a CPU would otherwise copy the shared recurrence into each consumer.
 """
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -52,13 +54,11 @@ class TaylorStepper(AbstractStepper):
     order: int = eqx.field(static=True)
     max_step: float = eqx.field(static=True)
 
+    rejects: ClassVar[bool] = False
+
     @property
     def error_order(self):
         return self.order
-
-    @property
-    def rejects(self):
-        return False
 
     @property
     def safety(self) -> float:

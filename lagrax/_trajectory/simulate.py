@@ -50,6 +50,9 @@ def vector_field(
     **Example:**
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
     term = diffrax.ODETerm(lagrax.vector_field(L))
     ```
     """

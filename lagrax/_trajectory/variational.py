@@ -217,8 +217,12 @@ class VariationalMidpoint(AbstractVariationalSolver):
     **Example:**
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
+    q0, qdot0 = jnp.array([1.0]), jnp.array([0.0])
     sol = diffrax.diffeqsolve(lagrax.LagrangianTerm(L), lagrax.VariationalMidpoint(),
-                              t0=0.0, t1=100.0, dt0=0.01, y0=(q0, qdot0))
+                              t0=0.0, t1=10.0, dt0=0.01, y0=(q0, qdot0))
     ```
     """
 
