@@ -176,6 +176,11 @@ def sweep_periods(
 
     jax.grad(mean_period)(4.0)  # -mean_period(4.0) / 8, as T ∝ 1/√g
     ```
+
+    **Repeat runs:** a new Lagrangian's first sweep compiles for seconds; to keep
+    compiled sweeps across processes, turn on JAX's persistent compilation cache
+    in your script (the library never changes JAX's configuration):
+    `jax.config.update("jax_compilation_cache_dir", "/path/to/cache")`.
     """
     q0 = as_real_array(q0, "q0")
     if q0.ndim != 1 or q0.shape[0] == 0:

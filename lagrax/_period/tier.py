@@ -67,8 +67,15 @@ def tapes_of(L_c, consts, dtype):
     return found
 
 
+def _params(n):
+    """Parameter inputs per tape: a multiple of 8 at least `n` (the unused ones
+    zero), so that Lagrangians with a few more or fewer constants share one
+    executable."""
+    return 8 * max(1, -(-n // 8))
+
+
 def _build(L_c, consts, dtype):
-    P = len(consts)
+    P = _params(len(consts))
     if any(np.size(c) != 1 for c in consts):
         raise NotImplementedError("a tape takes scalar parameters")
     shaped = lambda params: [
@@ -119,6 +126,7 @@ def choose(L_c, consts, solver, key, q0, n):
     _SWEPT[count] += n
     L_t, tapes = found
     params = [np.asarray(c).reshape(()) for c in consts]
+    params += [np.zeros((), q0.dtype)] * (L_t.n_params - len(params))
     taped = TapeTaylorStepper(order=solver.order, max_step=solver.max_step)
     plain = Taylor(order=solver.order, max_step=solver.max_step)
     return L_t, [tapes, *params], taped, plain
