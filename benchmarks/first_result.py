@@ -22,6 +22,10 @@ enable one are removed from the workers' environment), float64:
   `jax.jit(jax.vmap(...))`, beside heyoka.py's build of the same system (its
   `lagrangian()`, batch mode, tol 1e-12) and its run.
 - the CLI's default job (`python -m lagrax sweep --quiet`) from an empty cache.
+- the tape path (`LAGRAX_TAPE_TIER=1`: L as data, one executable per machine kept
+  in the library's own cache): a new Lagrangian (g = 1.3) in a fresh process with
+  that cache empty (the executable compiled and written once), then in another
+  fresh process with it filled; and its steady state beside the specialized one.
 
     python benchmarks/first_result.py [--quick] [--core 1]
 
@@ -45,6 +49,7 @@ RESULTS = os.path.join(HERE, "results")
 # The environment variables through which a persistent JAX compile cache could be
 # enabled, removed from the workers' environment.
 _CACHE_VARS = (
+    "LAGRAX_TAPE_TIER",
     "JAX_COMPILATION_CACHE_DIR",
     "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
     "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES",
@@ -147,6 +152,35 @@ def work_sweep(args):
         r2, times = _timed(jax, lambda: lagrax.sweep_periods(L2, q0), "rebuilt", stages)
         err2, failed2 = _max_error(r2.periods, _exact(a, g=2.0))
         row.update(times, rebuilt_max_rel_error=err2, rebuilt_failed=failed2)
+    return row
+
+
+def work_tape(args):
+    """A new Lagrangian's first sweep on the tape path, then its steady state and
+    the specialized program's, in one process."""
+    jax, lagrax, row, stages = _jax_import()
+    from lagrax._period import tier
+    from lagrax.systems import pendulum
+
+    a = _amplitudes(args.n)
+    q0 = jax.numpy.asarray(a)
+    L = pendulum.lagrangian(g=1.3)
+    r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "first", stages)
+    row.update(times)
+    err, failed = _max_error(r.periods, _exact(a, g=1.3))
+    row.update(n=args.n, max_rel_error=err, failed=failed)
+    if args.repeat:
+        r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "tape_steady")
+        row.update(times)
+        tier.SPECIALIZE_AFTER = 0
+        lagrax.sweep_periods(L, q0).periods.block_until_ready()
+        r2, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "spec_steady")
+        row.update(times)
+        diff = abs(r.periods / r2.periods - 1)
+        row.update(
+            tape_vs_specialized=float(jax.numpy.nanmax(diff)),
+            same_status=bool((r.status == r2.status).all()),
+        )
     return row
 
 
@@ -259,6 +293,7 @@ def work_heyoka(args):
 
 WORKERS = dict(
     sweep=work_sweep,
+    tape=work_tape,
     grad=work_grad,
     simulate=work_simulate,
     heyoka=work_heyoka,
@@ -268,14 +303,15 @@ WORKERS = dict(
 # ------------------------------------------------------------------------ driver
 
 
-def _env():
+def _env(**extra):
     env = {k: v for k, v in os.environ.items() if k not in _CACHE_VARS}
+    env.update(extra)
     repo = os.path.dirname(HERE)
     env["PYTHONPATH"] = repo + os.pathsep + env.get("PYTHONPATH", "")
     return env
 
 
-def spawn(core, kind, **kw):
+def spawn(core, kind, env=None, **kw):
     cmd = ["taskset", "-c", str(core), sys.executable, __file__, "--worker", kind]
     for k, v in kw.items():
         if v is True:
@@ -283,7 +319,7 @@ def spawn(core, kind, **kw):
         elif v is not False:
             cmd += [f"--{k}", str(v)]
     t = time.perf_counter()
-    out = subprocess.run(cmd, capture_output=True, text=True, env=_env())
+    out = subprocess.run(cmd, capture_output=True, text=True, env=_env(**(env or {})))
     wall = time.perf_counter() - t
     if out.returncode != 0:
         print(out.stderr[-3000:], file=sys.stderr)
@@ -352,6 +388,12 @@ def main():
     out["simulate_heyoka"] = spawn(c, "heyoka", n=256, system="double_pendulum")
     print("simulate", json.dumps(out["simulate"]))
     print("heyoka double pendulum", json.dumps(out["simulate_heyoka"]))
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(LAGRAX_TAPE_TIER="1", LAGRAX_CACHE_DIR=cache)
+        out["tape_cold"] = spawn(c, "tape", env=env, n=4096)
+        out["tape_warm"] = spawn(c, "tape", env=env, n=4096, repeat=True)
+    print("tape path, cache empty", json.dumps(out["tape_cold"]))
+    print("tape path, cache filled", json.dumps(out["tape_warm"]))
     if not args.quick:
         out["cli"] = cli_default_job(c)
         print("cli", json.dumps(out["cli"]))

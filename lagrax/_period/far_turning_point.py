@@ -12,21 +12,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .._jaxpr.fusion import one_fusion
-from .._jaxpr.trig import vectorized_trig
+from .mechanics import mechanics
 
 
 # Safeguarded Newton converges in ~5 iterations from the bracket; the loop stops when
 # every lane has converged.
 _MAX_NEWTON = 60
 _MAX_EXPAND = 40
-
-
-def at_rest(L, consts, dtype):
-    """q -> L(q, 0, 0) for a scalar q, with sines and cosines XLA vectorizes
-    (`vectorized_trig`; each a libm call per lane otherwise): for the turning-point
-    searches and tests, which evaluate it many times per lane."""
-    z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
-    return vectorized_trig(lambda q: L(jnp.reshape(q, (1,)), z1, z, *consts))
 
 
 class FarTurningPoint(eqx.Module):
@@ -49,9 +41,12 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     eps = jnp.finfo(dtype).eps
     # ~20 values of L and its slope per lane. Beyond the vectorized sines' range
     # (|argument| > 8.2e5) they are NaN: `in_range` says where L at q0 was finite.
-    Lr = at_rest(L, consts, dtype)
-    Lr_v = jax.vmap(Lr)
-    dF = jax.vmap(jax.grad(Lr))
+    # (Values at several points, and a value with its slope, each from one call:
+    # on the tape path each call is an interpreter in the program.)
+    mech = mechanics(L, consts)
+    Lr_v = mech.rest_lanes(dtype)
+    both = mech.rest_lanes_with_slope(dtype)
+    dF = lambda q: both(q)[1]
     # Each value of L is computed once and carried (for the pendulum each is a libm
     # call per lane, otherwise recomputed for F, its rounding and each loop's test).
     E0 = Lr_v(q0)
@@ -63,11 +58,11 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     found = ((Fb <= 0) | at_b) & (Fa > 0) & jnp.isfinite(a) & jnp.isfinite(b)
     secant = a + (b - a) * Fa / jnp.where(Fa != Fb, Fa - Fb, 1.0)
     x = jnp.where(found, jnp.where(at_b, b, secant), q0)
-    x = _newton(Lr_v, dF, noise, E0, a, b, x, found, at_b)
+    x = _newton(both, noise, E0, a, b, x, found, at_b)
     # The tangent of the root by the implicit function theorem (zero primal).
     # (At the root F = 0: the slope's own tangent multiplies F and is dropped.)
-    slope = jax.lax.stop_gradient(dF(x))
-    Lx = Lr_v(x)
+    Lx, slope = both(x)
+    slope = jax.lax.stop_gradient(slope)
     f0 = Lx - E0
     corr = -f0 / slope
     corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
@@ -89,7 +84,7 @@ def _bracket(Lr_v, dF, noise, E0, q0, q_m):
     d = q_m - q0
     out = jnp.sign(d)  # away from the release point
     a, b = q_m, q_m + d
-    La, Lb = Lr_v(a), Lr_v(b)
+    La, Lb = Lr_v(jnp.stack([a, b]))
     Fa, Fb = La - E0, Lb - E0
 
     def expand(c):
@@ -120,17 +115,17 @@ def _bracket(Lr_v, dF, noise, E0, q0, q_m):
     return a, b, Fa, Fb, Lb
 
 
-def _newton(Lr_v, dF, noise, E0, a, b, x, found, at_b):
+def _newton(both, noise, E0, a, b, x, found, at_b):
     """Safeguarded Newton from `x` inside the bracket `[a, b]`, to the rounding of F."""
     eps = jnp.finfo(x.dtype).eps
 
     def newton(c):
         a, b, x, done, k = c
-        Lx = Lr_v(x)
+        Lx, dLx = both(x)
         fx = Lx - E0
         done = done | (jnp.abs(fx) <= noise(Lx))
         a, b = jnp.where(fx > 0, x, a), jnp.where(fx > 0, b, x)
-        x_new = x - fx / dF(x)
+        x_new = x - fx / dLx
         ok = jnp.isfinite(x_new) & ((x_new - a) * (x_new - b) < 0)
         x_new = jnp.where(ok, x_new, 0.5 * (a + b))
         done = done | (jnp.abs(x_new - x) <= 2 * eps * jnp.abs(x))
@@ -154,8 +149,8 @@ def _band(Lr_v, E0, x, Lx, f0, slope):
     eps = jnp.finfo(x.dtype).eps
     h = 64 * eps * jnp.maximum(jnp.abs(x), eps)
     scatter = jnp.zeros_like(x)
-    for j in (-4, -3, -2, -1, 1, 2, 3, 4):
-        fj = Lr_v(x + j * h) - E0
-        scatter = jnp.maximum(scatter, jnp.abs(fj - f0 - slope * j * h))
+    js = (-4, -3, -2, -1, 1, 2, 3, 4)
+    for j, Lj in zip(js, Lr_v(jnp.stack([x + j * h for j in js]))):
+        scatter = jnp.maximum(scatter, jnp.abs(Lj - E0 - f0 - slope * j * h))
     half_ulp = 0.5 * eps * jnp.maximum(jnp.abs(Lx), jnp.abs(E0))
     return (scatter + half_ulp) / jnp.abs(slope)

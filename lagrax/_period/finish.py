@@ -5,7 +5,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from .._eom.mechanics import _accelerations, _jacobi
 from .._results import (
     COORDINATE_SINGULARITY,
     ENERGY_DRIFT,
@@ -20,6 +19,7 @@ from .._results import (
 from .._stepper.base import fused
 from .estimate import BoundTerms
 from .events import Event, MAX_SPEED
+from .mechanics import mechanics
 from .outcome import LOCATE_FAILED, LOCATED, MAX_STEPS, NO_EVENT
 
 
@@ -31,15 +31,6 @@ class Ends(eqx.Module):
     t_event: Float[Array, " n"]
     q_end: Float[Array, " n"]
     qdot_end: Float[Array, " n"]
-
-
-def _accel(Lp, r, s, x, v):
-    """The acceleration in the lane's units, of one lane (`r`: its `Release`)."""
-    q0, Qs, tau = r.q0, r.Qs, r.tau
-    qddot, _ = _accelerations(
-        Lp, (q0 + Qs * x)[None], (Qs / tau * v)[None], tau * s, fuse=False
-    )
-    return qddot[0] * tau**2 / Qs
 
 
 def _status(raw, r, drifted, ok_end, h1):
@@ -65,7 +56,7 @@ def _status(raw, r, drifted, ok_end, h1):
     )
 
 
-def _lane_end(Lp, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e, *sums):
+def _lane_end(mech, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e, *ss):
     """One lane: its status (a leg whose energy drifted beyond `energy_tol` fails,
     whatever the solver said), end state, the event function there and its jerk,
     and the error bound's sums in time units."""
@@ -74,42 +65,37 @@ def _lane_end(Lp, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e, 
     zero = jnp.zeros((), dtype)
     q0, M0, a0s, Qs, tau = r.q0, r.M0, r.a0s, r.Qs, r.tau
     q_end, qdot_end, t_end = q0 + Qs * x_e, (Qs / tau) * v_e, tau * s_e
-    h0, size0 = _jacobi(Lp, q0[None], zero[None], zero)
-    h1, size1 = _jacobi(Lp, q_end[None], qdot_end[None], t_end)
+    h0, size0 = mech.jacobi(q0[None], zero[None], zero)
+    (_, (M_end, ok_end)), (h1, size1) = mech.point(
+        q_end[None], qdot_end[None], t_end, fuse=False
+    )
     scale = jnp.abs(M0 * a0s) * Qs
     tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
     allowed = tol * scale + 1024 * eps * (size0 + size1)
     drifted = ~(jnp.abs(h1 - h0) <= allowed)  # NaN energies count as drift
-    _, (M_end, ok_end) = _accelerations(
-        Lp, q_end[None], qdot_end[None], t_end, fuse=False
-    )
     # The estimate's sums in time units; they assume a constant mass, checked at the
     # leg's two ends.
-    ph, J, F, G = sums
+    ph, J, F, G = ss
     const_mass = jnp.abs(M_end[0, 0] - M0) <= 8 * eps * jnp.abs(M0)
     terms = BoundTerms(
         tau * ph, tau * J, tau * F / Qs, jnp.where(const_mass, G, jnp.inf)
     )
     status = _status(raw, r, drifted, ok_end, h1)
-    a_e = _accel(Lp, r, s_e, x_e, v_e)
+    a_e = mech.end_accel(r, s_e, x_e, v_e)
     g = Event(kind, sigma, (target - q0) / Qs).value(x_e, v_e, a_e)
-    _, jerk = jax.jvp(
-        lambda s, x, v: _accel(Lp, r, s, x, v),
-        (s_e, x_e, v_e),
-        (jnp.ones_like(s_e), v_e, a_e),
-    )
+    jerk = mech.end_jerk(r, s_e, x_e, v_e, a_e)
     ends = (status.astype(jnp.int32), q_end, qdot_end, a_e, g, jerk)
     return ends, terms
 
 
-def _central_jerk(Lp, r, s_e, x_e, v_e, a_e):
+def _central_jerk(mech, r, s_e, x_e, v_e, a_e):
     """The jerk by a central difference along the flow: where the user's L has a
     removable singularity in a third derivative exactly at the event (x ** p with an
     array of exponents at x = 0 gives 0 * inf)."""
     d = 1e-5
     return (
-        _accel(Lp, r, s_e + d, x_e + v_e * d + 0.5 * a_e * d**2, v_e + a_e * d)
-        - _accel(Lp, r, s_e - d, x_e - v_e * d + 0.5 * a_e * d**2, v_e - a_e * d)
+        mech.end_accel(r, s_e + d, x_e + v_e * d + 0.5 * a_e * d**2, v_e + a_e * d)
+        - mech.end_accel(r, s_e - d, x_e - v_e * d + 0.5 * a_e * d**2, v_e - a_e * d)
     ) / (2 * d)
 
 
@@ -146,7 +132,7 @@ def finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
     """Statuses, event times and end states (`Ends`) and the error bound's sums in
     time units (`BoundTerms`) from the loop's output `out` (vmapped over lanes).
     `rel`: each lane's `Release`."""
-    Lp = lambda q, qd, t: L(q, qd, t, *consts)
+    mech = mechanics(L, consts)
     sums = (
         out.sums
         if out.sums is not None
@@ -154,7 +140,7 @@ def finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
     )
     s_e, x_e, v_e = out.s, out.x, out.v
     per_lane = (targets, kinds, rtols, out.sigma, out.raw, s_e, x_e, v_e)
-    one = lambda *a: _lane_end(Lp, energy_tol, *a)
+    one = lambda *a: _lane_end(mech, energy_tol, *a)
     ends, terms = jax.vmap(one)(rel, *per_lane, *sums)
     # One fusion for the per-lane outputs, so that L's values at the two ends of the
     # leg (energies, mass, acceleration, jerk) are computed once each, not once per
@@ -164,7 +150,7 @@ def finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
     # (The central difference only where some jerk is not finite: two more
     # accelerations per lane otherwise.)
     bad = ~jnp.isfinite(jerk)
-    central = lambda *a: _central_jerk(Lp, *a)
+    central = lambda *a: _central_jerk(mech, *a)
     jerk = jax.lax.cond(
         jnp.any(bad),
         lambda: jnp.where(bad, jax.vmap(central)(rel, s_e, x_e, v_e, a_e), jerk),
@@ -187,10 +173,10 @@ def blame_coordinates(L, consts, q0, q_far, status):
     """`coordinate_singularity` for failed lanes whose mass vanishes on the swing."""
     dtype = q0.dtype
     z1, z = jnp.zeros((1,), dtype), jnp.zeros((), dtype)
-    Lp = lambda q, qd, t: L(q, qd, t, *consts)
+    mech = mechanics(L, consts)
 
     def mass(q):
-        _, (M, _) = _accelerations(Lp, jnp.reshape(q, (1,)), z1, z, fuse=False)
+        _, (M, _) = mech.accelerations(jnp.reshape(q, (1,)), z1, z, fuse=False)
         return jnp.abs(M[0, 0])
 
     def vanishes(q0, q_far):

@@ -18,15 +18,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._jaxpr.trig import vectorized_trig
 from .._stepper.base import AbstractStepper, LaneField
 from .._stepper.controller import IController
 from .estimate import step_increments, step_terms
 from .events import Event, locate_in_step, search
 from .lane import advance, fuse_lanes, LaneConstants, next_lane
+from .mechanics import mechanics
 from .outcome import lane_outcome
 from .queue import Queue
-from .units import lane_scales, scaled_acceleration
+from .units import lane_scales
 
 
 class Pass(eqx.Module):
@@ -44,20 +44,12 @@ class Pass(eqx.Module):
 
 
 def _accelerations(L, consts):
-    """The acceleration in lane units: for one lane (`accel_one`, what Taylor
-    coefficients are computed from), and over lanes for the steps (`accel_lanes`).
-
-    `accel_lanes` is traced once and reused by every call site (13 per Dopri8 step,
-    the event, the refill), and not inlined into the loop's jaxpr: `jvp` and `vmap`
-    of the call are then done once for all sites; XLA inlines the calls. Its sines
-    and cosines are `vectorized_trig`'s, which XLA vectorizes, not one libm call per
-    lane. It has no `one_fusion` of its own: inside a step that is one fusion a
-    nested reduce would split it (XLA's code-duplication limit then splits the Taylor
-    recurrence into many fusions).
-    """
-    accel_one = scaled_acceleration(L, consts)
-    plain = scaled_acceleration(L, consts, fuse=False)
-    return accel_one, jax.jit(jax.vmap(vectorized_trig(plain)))
+    """The acceleration in lane units: for one lane (`scalar_accel(s, x, v, p)`,
+    what Taylor coefficients are computed from), and over lanes for the steps
+    (`accel_lanes`, `Mechanics.lane_field_accel`: traced once and reused by every
+    call site, 13 per Dopri8 step, the event, the refill)."""
+    mech = mechanics(L, consts)
+    return mech.scalar_accel(), mech.lane_field_accel()
 
 
 def _queue(cfg, controller, rel, q0s, targets, kinds, rtols, atols, t_max, n_live):
@@ -94,7 +86,7 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
     width = min(cfg.width, n)
     dtmin = 1024 * jnp.finfo(q0s.dtype).eps
     stepper, controller = cfg.stepper, IController()
-    accel_one, accel_lanes = _accelerations(L, consts)
+    scalar_accel, accel_lanes = _accelerations(L, consts)
     # Each amplitude's release quantities, once for the whole queue (in the refill
     # they would be computed again for every lane).
     rel = lane_scales(L, q0s, consts)
@@ -108,7 +100,7 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
         event = Event(c.kind, lane.sigma, c.xt)
         field = LaneField(
             accel=lambda s, x, v: accel_lanes(c.q0, c.Qs, c.tau, s, x, v),
-            scalar_accel=lambda s, x, v, p: accel_one(*p, s, x, v),
+            scalar_accel=scalar_accel,
             params=(c.q0, c.Qs, c.tau),
         )
         base, free = (lane.s, lane.x, lane.v, lane.a), ~lane.search.locating

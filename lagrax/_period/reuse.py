@@ -26,18 +26,24 @@ def canonical_inputs(L, solver, dtype):
     == L(q, qdot, t)`), its lifted constants, and the solver the kernel steps with
     (`resolve_solver`), decided once per canonical function."""
     L_c, consts = canonical_lagrangian(L, dtype)
+    return L_c, consts, resolved_solver(L_c, consts, solver, dtype)
+
+
+def resolved_solver(L_c, consts, solver, dtype):
+    """`resolve_solver` for the canonical `L_c`, decided once per canonical
+    function, dtype and solver."""
     key = (L_c, np.dtype(dtype).name, solver)
     try:
         found = _RESOLVED.get(key)
     except TypeError:  # an unhashable solver: decide anew
-        return L_c, consts, _resolve(L_c, consts, solver, dtype)
+        return _resolve(L_c, consts, solver, dtype)
     if found is None:
         found = _RESOLVED[key] = _resolve(L_c, consts, solver, dtype)
         if len(_RESOLVED) > _MAX_RESOLVED:
             _RESOLVED.popitem(last=False)
     else:
         _RESOLVED.move_to_end(key)
-    return L_c, consts, found
+    return found
 
 
 def _resolve(L_c, consts, solver, dtype):

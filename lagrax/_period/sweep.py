@@ -12,14 +12,17 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._checks import as_real_array, check_callable, check_devices, positive_int
+from .._jaxpr.canonical import canonical_lagrangian
 from .._results import status_message, SUCCESS
 from .._taylor.solver import Taylor
+from . import executables
 from .autodiff import periods_diff
 from .device import Periods
 from .methods import Method
 from .options import check_options
-from .reuse import canonical_inputs
+from .reuse import resolved_solver
 from .solver import stepper_of
+from .tier import choose
 
 
 def _lane_order(q0):
@@ -173,6 +176,11 @@ def sweep_periods(
 
     jax.grad(mean_period)(4.0)  # -mean_period(4.0) / 8, as T ∝ 1/√g
     ```
+
+    **Repeat runs:** a new Lagrangian's first sweep compiles for seconds; to keep
+    compiled sweeps across processes, turn on JAX's persistent compilation cache
+    in your script (the library never changes JAX's configuration):
+    `jax.config.update("jax_compilation_cache_dir", "/path/to/cache")`.
     """
     q0 = as_real_array(q0, "q0")
     if q0.ndim != 1 or q0.shape[0] == 0:
@@ -190,15 +198,28 @@ def sweep_periods(
     dtype = q0.dtype
     # (Keyed on what L computes: a rebuilt L with new parameter values reuses the
     # program compiled for the first.)
-    L_c, consts, solver = canonical_inputs(L, solver, dtype)
-    stepper = stepper_of(solver)
+    L_c, consts = canonical_lagrangian(L, dtype)
+    n = q0.shape[0]
+    # The first sweeps of a Lagrangian on the tape path (L as data: no compile per
+    # L), until the specialized program would repay its compile (`tier.py`).
+    static = (opts.method, chunk_size, opts.max_steps, bool(error_estimate), devices)
+    tape = choose(L_c, consts, solver, (static, solver), q0, n)
+    taped = tape is not None
+    if taped:
+        L_run, consts, stepper, solver = tape
+    else:
+        L_run, solver = L_c, resolved_solver(L_c, consts, solver, dtype)
+        stepper = stepper_of(solver)
     cfg = Method(stepper, opts.method, chunk_size, opts.max_steps, bool(error_estimate))
     args = (consts, opts.rtol, opts.atol, opts.t_max, opts.energy_tol)
 
     def run(q, order):
-        return _sweep_call(L_c, cfg, devices, q, order, *args)
+        if taped:
+            jitted = _sweep_jit(L_run, cfg, devices)
+            static = (L_run, cfg, devices)
+            return executables.call(jitted, static, _OUT_TREE, q, order, *args)
+        return _sweep_call(L_run, cfg, devices, q, order, *args)
 
-    n = q0.shape[0]
     order = _lane_order(q0) if sort else np.arange(n, dtype=np.int32)
     if progress is None:
         out, useful = run(q0, order)
@@ -254,6 +275,10 @@ def _sweep_call(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol)
     Python and dispatch cost as much as a small sweep). The lanes run in the order
     `order` (a permutation of the inputs); the outputs come back in input order."""
     return _sweep_jit(L, m, devices)(q0, order, consts, rtol, atol, t_max, energy_tol)
+
+
+# The structure of `_sweep_body`'s outputs.
+_OUT_TREE = jax.tree.structure((Periods(*[0] * 5), 0))
 
 
 @functools.lru_cache(maxsize=64)

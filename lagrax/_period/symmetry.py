@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .estimate import PROMISE
-from .far_turning_point import at_rest
+from .mechanics import mechanics
 
 
 @eqx.filter_jit
@@ -19,10 +19,12 @@ def is_turning_point(L, consts, q0, q, tol):
     # Beyond the vectorized sines' range L is NaN here and the test fails; such a
     # lane has already failed in the loop ("solver failed": its steps use the same
     # sines), and only a success is ever turned into "not symmetric".
-    Lr = at_rest(L, consts, dtype)
+    mech = mechanics(L, consts)
+    Lr = mech.rest(dtype)
+    both = mech.rest_value_and_slope(dtype)
 
     def one(q0, q, tol):
-        Lq, dLq = jax.value_and_grad(Lr)(q)
+        Lq, dLq = both(q)
         Lq0 = Lr(q0)
         noise = 4 * eps * (jnp.abs(Lq) + jnp.abs(Lq0))
         return jnp.abs(Lq - Lq0) <= noise + tol * jnp.abs(dLq)
@@ -51,7 +53,8 @@ def mirror_symmetric(L, consts, q0, q_m, qd_m, rtols):
     dtype = q0.dtype
     eps = jnp.finfo(dtype).eps
     z = jnp.zeros((), dtype)
-    Lr = lambda q, w: L(jnp.reshape(q, (1,)), jnp.reshape(w, (1,)), z, *consts)
+    mech = mechanics(L, consts)
+    Lr = lambda q, w: mech.value(jnp.reshape(q, (1,)), jnp.reshape(w, (1,)), z)
 
     def one(q0, q_m, qd_m, rtol):
         # (At the speed of the meeting point: the potential and the mass at once; a

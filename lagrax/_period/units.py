@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .._eom.mechanics import _accelerations
 from .._stepper.base import fused
+from .mechanics import mechanics
 
 
 class Release(eqx.Module):
@@ -32,13 +32,13 @@ class Release(eqx.Module):
     sigma: Float[Array, ""]
 
 
-def _release(Lp, q0) -> Release:
-    """`Release` of one lane (a scalar `q0`)."""
+def _release(mech, q0) -> Release:
+    """`Release` of one lane (a scalar `q0`; `mech`: `mechanics(L, consts)`)."""
     zero = jnp.zeros((), q0.dtype)
     finite = jnp.isfinite(q0)
     q0 = jnp.where(finite, q0, 1.0)
     # (Unfused here: `lane_scales` fuses this function's outputs as a whole.)
-    a0, (M0, ok0) = _accelerations(Lp, q0[None], zero[None], zero, fuse=False)
+    a0, (M0, ok0) = mech.accelerations(q0[None], zero[None], zero, fuse=False)
     a0, M0 = a0[0], M0[0, 0]
     start_ok = ok0 & jnp.isfinite(a0)
     moving = a0 != 0
@@ -52,7 +52,7 @@ def _release(Lp, q0) -> Release:
 def lane_scales(L, q0, consts) -> Release:
     """`Release` of each lane (vmapped), computed once per pass for the whole queue:
     the table of constants and `finish` read it."""
-    release = lambda q0: _release(lambda q, qd, t: L(q, qd, t, *consts), q0)
+    release = lambda q0: _release(mechanics(L, consts), q0)
     # Its outputs through one fusion: each is read by several fusions, and XLA
     # would copy the acceleration at q0 (a libm sine per lane for the pendulum) into
     # each of them.
@@ -61,19 +61,4 @@ def lane_scales(L, q0, consts) -> Release:
 
 def scaled_acceleration(L, consts, fuse=None):
     """The acceleration in a lane's own units: `accel(q0, Qs, tau, s, x, v)`."""
-
-    def accel_one(q0, Qs, tau, s, x, v):
-        Vs, As = Qs / tau, Qs / tau**2
-        qddot, _ = _accelerations(
-            lambda q, qd, t: L(q, qd, t, *consts),
-            (q0 + Qs * x)[None],
-            (Vs * v)[None],
-            tau * s,
-            fuse=fuse,
-        )
-        # Behind a select (As > 0 always: the same values), the division has one
-        # reader: XLA's CPU fusion will not copy an expensive op to several readers
-        # and would split the Taylor step's fusion instead.
-        return jnp.where(As != 0, qddot[0] / As, jnp.nan)
-
-    return accel_one
+    return mechanics(L, consts).scaled_acceleration(fuse)

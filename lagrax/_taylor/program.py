@@ -236,9 +236,9 @@ class _Program:
                 return result
             base = self._add("mul", lax.mul_p, [base, base], {}, [aval], True)[0]
 
-    def _prune(self):
-        """Drops equations the output does not depend on."""
-        live = {self.out}
+    def _prune(self, outs=None):
+        """Drops equations the output (or `outs`) does not depend on."""
+        live = {self.out} if outs is None else set(outs)
         kept = []
         for node in reversed(self.nodes):
             if any(o in live for o in node.outs):
