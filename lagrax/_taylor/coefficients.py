@@ -49,6 +49,7 @@ from jax.extend import core as jex_core
 
 from .._jaxpr import trig as _trig
 from .._jaxpr.fusion import fusion_off
+from .diffrax_solver import AbstractTaylorSolver
 
 
 __all__ = ["Taylor", "taylor_coefficients"]
@@ -1090,7 +1091,7 @@ def taylor_coefficients(
     return coeffs
 
 
-class Taylor(eqx.Module):
+class Taylor(AbstractTaylorSolver):
     r"""A Taylor integrator (heyoka's method) for `period` and `sweep_periods`.
 
     Each step expands the trajectory to order $K$ about the current state with the
