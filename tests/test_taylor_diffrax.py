@@ -140,3 +140,40 @@ def test_non_ode_term_rejected():
     ))  # fmt: skip
     with pytest.raises(TypeError, match="ODETerm"):
         dfx.diffeqsolve(term, lagrax.Taylor(order=K), 0.0, 1.0, 0.1, jnp.asarray(1.0))
+
+
+def test_mass_matrix_solve_recurrence_three_coordinates():
+    # n = 3 takes the marked solve (one factorization of M_0 per step): the series
+    # of y' = F(y) against nested JVPs, y_k = y^(k)(0) / k!, up to order 5.
+    def L(q, qdot, t):
+        s = jnp.sin(q)
+        T = 0.5 * qdot @ qdot + 0.05 * (s @ qdot) ** 2  # M = I + 0.1 s s^T
+        return T - 0.5 * q @ q - 0.1 * q[0] * q[1] * q[2]
+
+    field = lagrax.vector_field(L)
+    q0, v0 = jnp.array([0.4, -0.3, 0.7]), jnp.array([0.2, 0.5, -0.1])
+
+    def F(y):
+        return jnp.concatenate(field(0.0, (y[:3], y[3:]), None))
+
+    from lagrax._taylor.system import System
+
+    system = System(lambda t, ys, p: list(field(t, tuple(ys), None)), 0.0, [q0, v0], [])
+    assert any(node.kind == "solve" for node in system.prog.nodes)
+    coefs = jax.jit(lambda q, v: system.coefficients(4, jnp.zeros(1), [q, v], []))(
+        q0[None], v0[None]
+    )
+    series = np.array([[float(c[k][0]) for c in coefs] for k in range(5)])
+
+    def derivatives(y):
+        g, out = F, []
+        for _ in range(4):
+            out.append(g(y))
+            g = (lambda g: lambda y: jax.jvp(g, (y,), (F(y),))[1])(g)
+        return out
+
+    y = jnp.concatenate([q0, v0])
+    factorial = 1.0
+    for k, d in enumerate(jax.jit(derivatives)(y), start=1):
+        factorial *= k
+        np.testing.assert_allclose(series[k], d / factorial, rtol=1e-12, atol=1e-12)

@@ -21,20 +21,27 @@ on scalar entries (one core, measured).
 import math
 
 import jax
+import jax.extend
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from .._jaxpr import scalarize as _scalarize
 from .._jaxpr.fusion import fusion_off
+from . import solve as _solve
 from .coefficients import (
     _bind,
     _initial,
     _Order0,
     _order_k,
     _Program,
+    _RULES,
     _Store,
     _Unrolled,
 )
+
+
+_RULES["solve"] = _solve.solve_rule
 
 
 class _SystemProgram(_Program):
@@ -60,6 +67,16 @@ class _SystemProgram(_Program):
         self.outs = self._inline(closed.jaxpr, closed.consts, self.inputs + self.params)
         self.out = None
         self._prune()
+
+    def _emit(self, prim, args, params, outvars):
+        if prim is not _solve.definite_solve_p or not any(
+            a in self.series for a in args
+        ):
+            return super()._emit(prim, args, params, outvars)
+        avals = [v.aval for v in outvars]
+        outs = self._add("solve", prim, args, params, avals, True)
+        self.series.discard(outs[-1])  # `ok`: decided at order 0
+        return outs
 
     def _prune(self):
         live = set(self.outs)
@@ -96,11 +113,80 @@ class _SystemOrder0(_Order0):
                     outs = [jnp.sin(vals[0]), jnp.cos(vals[0])]
             elif node.kind == "sinhcosh":
                 outs = [jnp.sinh(vals[0]), jnp.cosh(vals[0])]
+            elif node.kind == "solve":
+                n = node.params["n"]
+                x, ok = _solve.entries_solve(vals[: n * n], vals[n * n :], n)
+                outs = [*x, ok]
             else:
                 outs = _bind(node.prim, node.params, vals, batched)
             for o, value in zip(node.outs, outs):
                 self.val[o] = value
                 self.bat[o] = any(batched)
+
+
+def _marked(eqn):
+    return eqn.primitive.name in ("pjit", "jit") and (
+        eqn.params.get("name") == _solve.MARK
+    )
+
+
+def _cost(jaxpr):
+    """`scalarize._cost`, with the marked solve counted as its entries."""
+    total = 0
+    for eqn in jaxpr.eqns:
+        if _marked(eqn):
+            total += sum(math.prod(v.aval.shape) for v in eqn.invars)
+        elif eqn.primitive.name in _scalarize._CALLS:
+            inner = _scalarize._inner(eqn)
+            if not isinstance(inner, jax.extend.core.ClosedJaxpr):
+                return math.inf
+            total += _cost(inner.jaxpr)
+        else:
+            name = eqn.primitive.name
+            if name not in _scalarize._ELEMENTWISE | _scalarize._STRUCTURAL:
+                return math.inf
+            if name == "pad" and any(i for *_, i in eqn.params["padding_config"]):
+                return math.inf
+            total += sum(math.prod(v.aval.shape) for v in eqn.outvars)
+    return total
+
+
+def _eval_entries(jaxpr, consts, args):
+    """`scalarize._eval_jaxpr` (the jaxpr on object arrays of scalars), with each
+    marked solve (`solve.definite_solve`) bound as one `definite_solve_p` on its
+    entries."""
+    env = {}
+
+    def read(v):
+        if isinstance(v, jax.extend.core.Literal):
+            return _scalarize._objects(np.asarray(v.val))
+        return env[v]
+
+    for v, c in zip(jaxpr.constvars, consts):
+        known = isinstance(c, np.ndarray) or not isinstance(c, jax.core.Tracer)
+        env[v] = _scalarize._objects(np.asarray(c) if known else c)
+    for v, a in zip(jaxpr.invars, args):
+        env[v] = a
+    for eqn in jaxpr.eqns:
+        ins = [read(v) for v in eqn.invars]
+        if _marked(eqn):
+            M, rhs = ins
+            n = rhs.shape[0]
+            flat = [jnp.asarray(e) for e in (*M.reshape(-1), *rhs.reshape(-1))]
+            res = _solve.definite_solve_p.bind(*flat, n=n)
+            outs = [_scalarize._filled((n,), res[:n]), _scalarize._filled((), [res[n]])]
+        elif eqn.primitive.name in _scalarize._CALLS:
+            inner = _scalarize._inner(eqn)
+            outs = _eval_entries(inner.jaxpr, inner.consts, ins)
+        else:
+            outs = _scalarize._apply(eqn, ins)
+            if not eqn.primitive.multiple_results:
+                outs = [outs]
+        for v, out in zip(eqn.outvars, outs):
+            env[v] = (
+                out if isinstance(out, np.ndarray) else _scalarize._filled((), [out])
+            )
+    return [read(v) for v in jaxpr.outvars]
 
 
 # The most scalar entries (`scalarize._cost`) a vector field may have for its
@@ -138,7 +224,7 @@ class System:
         self.shapes = [y.shape for y in yspecs]
         self.dtypes = [y.dtype for y in yspecs]
         self.sizes = [math.prod(s) for s in self.shapes]
-        self.scalar = _scalarize._cost(closed.jaxpr) <= _SCALAR_BUDGET
+        self.scalar = _cost(closed.jaxpr) <= _SCALAR_BUDGET
         if not self.scalar:
             self.prog = _SystemProgram(closed, 1 + n, len(params))
             return
@@ -151,7 +237,7 @@ class System:
                 args.append(_scalarize._filled(shape, entries[i : i + size]))
                 i += size
             args += [_scalarize._objects(p) for p in entries[m:]]
-            outs = _scalarize._eval_jaxpr(closed.jaxpr, closed.consts, args)
+            outs = _eval_entries(closed.jaxpr, closed.consts, args)
             return tuple(
                 jnp.asarray(v, aval.dtype)
                 for out, aval in zip(outs, out_avals)
