@@ -31,9 +31,9 @@ of the fastest rounds as well (contention only slows a run down). The ratios are
 variant / hand-written, measured in the same run.
 
 Where lagrax offers a choice, both sides are timed in the same run: `lagrax fuse=False`
-is the n = 2 vector field without `one_fusion` (the code before it), `lagrax
-fuse=True` the n = 1 one with it (not lagrax's default there, see
-`_mechanics._accelerations`).
+is the n <= 2 vector field without the one fusion of its outputs (lagrax's default
+fuses them), and `lagrax array path` the accelerations as array operations (what
+lagrax does for n > 2) instead of entry by entry.
 
 Usage: `python benchmarks/eom_overhead.py [--quick] [--repeats N] [--batch B]
 [--chain N ...] [--part all|systems|chain]`. Writes
@@ -194,14 +194,13 @@ def chain_hand(N, m=1.0, l=1.0, g=1.0):
 
 
 def fuse_toggled(L, n):
-    """lagrax's vector field with `one_fusion` toggled against its default for n
-    coordinates (off for n == 2: the code before the fusion; on for n == 1, where
-    the default leaves it off), or None for n > 2 (no fusion there)."""
+    """lagrax's vector field without the one fusion of its outputs (the default
+    fuses them for n <= 2), or None for n > 2 (no fusion there)."""
     from lagrax._eom.mechanics import _accelerations
 
     if n > 2:
         return None, None
-    fuse = n == 1
+    fuse = False
 
     def f(t, y, args):
         q, qdot = y
@@ -441,8 +440,8 @@ def check_accuracy(system, y0, count=64):
 
 
 def unfused_accelerations(L):
-    """lagrax's accelerations before round three: the same forward-over-reverse
-    derivatives and solve, evaluated as array operations (not entry by entry)."""
+    """lagrax's accelerations as array operations (its path for n > 2): the same
+    forward-over-reverse derivatives and solve, not evaluated entry by entry."""
     from lagrax._eom.mechanics import _lagrange_terms, _solve_definite
 
     def acc(q, qdot):
@@ -470,7 +469,7 @@ def evaluation_variants(system):
     if f is not None:
         accs[name] = (lambda f: lambda q, qdot: f(0.0, (q, qdot), None)[1])(f)
     if n <= 2:  # beyond, lagrax evaluates it this way itself
-        accs["lagrax array path (before)"] = unfused_accelerations(system["L"])
+        accs["lagrax array path"] = unfused_accelerations(system["L"])
     return accs
 
 
@@ -562,10 +561,9 @@ def plot_chain(report, path):
     for key, label, style in [
         (("evaluation", "lagrax"), "lagrax, accelerations alone", "o-"),
         (("fixed", "lagrax"), "lagrax, in a fixed-step Tsit5 solve", "s-"),
-        (("evaluation", "lagrax fuse=True"), "fuse=True (N = 1), alone", "^"),
-        (("fixed", "lagrax fuse=True"), "fuse=True (N = 1), in Tsit5", "v"),
-        (("fixed", "lagrax fuse=False"), "fuse=False (N = 2, before), in Tsit5", "D"),
-        (("evaluation", "lagrax array path (before)"), "array path, alone", "x--"),
+        (("evaluation", "lagrax fuse=False"), "fuse=False, alone", "^"),
+        (("fixed", "lagrax fuse=False"), "fuse=False, in Tsit5", "D"),
+        (("evaluation", "lagrax array path"), "array path, alone", "x--"),
     ]:
         have = [N for N in Ns if key[1] in chain[N][key[0]]]
         ratios = [chain[N][key[0]][key[1]]["ratio"] for N in have]
@@ -609,7 +607,6 @@ def plot(report, path):
             "sympy": "tab:green",
             "lagrax": "tab:blue",
             "lagrax fuse=False": "lightsteelblue",
-            "lagrax fuse=True": "lightsteelblue",
         }
         for sysname, entry in report["systems"].items():
             for name, row in entry[regime].items():

@@ -33,9 +33,9 @@ measured on its own (first call, `jax.clear_caches()` before).
     python benchmarks/sweep.py --gpu     # 1e4 … 1e6 lanes on the default JAX backend
 
 `--gpu` also runs heyoka.py (one pinned core, and one process per core) on the same
-machine's CPU where it is installed; where it is not (its wheel, ~100 MB, is over
-what travels to this project's GPU machine), the GPU rows are compared with heyoka.py's
-best rates in the committed `results/sweep.json`, and the output says so.
+machine's CPU where it is installed; where it is not (its wheel is ~100 MB), the GPU
+rows are compared with heyoka.py's best rates in the committed `results/sweep.json`,
+and the output says so.
 
 Writes `benchmarks/results/sweep.json` and `sweep.png` (or `sweep_gpu.json`).
 """
@@ -75,9 +75,8 @@ def _exact(a):
 
 def _best(fn, repeats, min_seconds=1.0):
     """The output and the shortest time of at least `repeats` calls, and of as many as
-    fill `min_seconds`: a call of a few milliseconds varies from call to call (two
-    JAX devices on this 2-core machine: 2.9-4.7 ms, the best of five often 4),
-    so short calls are repeated for a second (measured)."""
+    fill `min_seconds`: a call of a few milliseconds varies from call to call (most
+    with two JAX devices), so short calls are repeated for a second."""
     times, out = [], None
     start = time.perf_counter()
     while len(times) < repeats or time.perf_counter() - start < min_seconds:
@@ -302,10 +301,9 @@ def work_jax(args):
         rows.append(_row("naive diffrax vmap, rtol 1e-13", T, exact, sec))
 
         # The ceiling: the vector field alone, 13 evaluations per lane-step. Unfused
-        # (`fuse=False`): alone in a loop, the one-fusion form of the accelerations
-        # measured ~50% slower (167 vs 111 ns per 13), its pay-off is inside a step.
-        # With the sines the kernel's Runge-Kutta stages use (`vectorized_trig`),
-        # so that the column compares like with like.
+        # (`fuse=False`): alone in a loop the one-fusion form is the slower one; it
+        # pays inside a step. With the sines the kernel's Runge-Kutta stages use
+        # (`vectorized_trig`), so that the column compares like with like.
         def accel(x, v):
             z = jnp.zeros((), x.dtype)
             qddot, _ = _accelerations(L, x[None], v[None], z, fuse=False)

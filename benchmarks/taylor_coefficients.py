@@ -1,4 +1,4 @@
-"""Cost of `lagrax._taylor.coefficients.taylor_coefficients` against one `jnp.sin` call.
+"""Cost of `lagrax._taylor.program.taylor_coefficients` against one `jnp.sin` call.
 
 Per lane: order-K Taylor coefficients of the pendulum x' = v, v' = -sin(q0 + x), with
 the acceleration from lagrax's autodiff `_accelerations` of L = qdot^2/2 + cos q, at
@@ -19,7 +19,7 @@ import jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 
 from lagrax._eom.mechanics import _accelerations  # noqa: E402
-from lagrax._taylor.coefficients import taylor_coefficients  # noqa: E402
+from lagrax._taylor.program import taylor_coefficients  # noqa: E402
 
 
 def L(q, qdot, t):

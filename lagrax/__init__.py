@@ -1,4 +1,29 @@
-import importlib.metadata
+"""Lagrangian mechanics by automatic differentiation, on JAX and diffrax.
+
+Write a Lagrangian as a plain JAX function `L(q, qdot, t) -> scalar` (parameters by
+closure); lagrax derives Lagrange's equations by autodiff,
+
+    M q̈ = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t + Q,   M = ∂²L/∂q̇²,
+
+and integrates them, one state or many at once.
+
+- Equations of motion: `accelerations`, `mass_matrix`, `momenta`, `energy`,
+    `vector_field`; from particle positions and constraints: `particle_lagrangian`,
+    `generalized_force`, `dissipation_force`, `degrees_of_freedom`,
+    `check_embedding`; a change of coordinates: `reparametrize`.
+- Trajectories: `simulate` (diffrax), or `LagrangianTerm` with the variational
+    integrators `VariationalMidpoint`, `GaussLegendre4`, `GaussLegendre6`.
+- Periods of one-coordinate oscillations: `period`, `sweep_periods` (many amplitudes
+    at once, a `SweepResult`), the solver `Taylor`, the oracle `quadrature_period`.
+- Failure statuses: `status_message`, `STATUS_CODES`, `RESULTS`.
+- `lagrax.systems`: ready-made Lagrangians with their exact references.
+
+lagrax never changes JAX's configuration: for float64, where accuracy is claimed, call
+`jax.config.update("jax_enable_x64", True)` at the start of the program. The command
+line `lagrax sweep` (`python -m lagrax sweep --help`) sweeps periods against amplitude.
+"""
+
+import importlib.metadata as _metadata
 
 from . import systems as systems
 from ._eom.mechanics import (
@@ -29,7 +54,7 @@ from ._results import (
     status_message as status_message,
     status_result as status_result,
 )
-from ._taylor.coefficients import Taylor as Taylor
+from ._taylor.solver import Taylor as Taylor
 from ._trajectory.batch import simulate_batch as simulate_batch
 from ._trajectory.gauss_legendre import (
     GaussLegendre4 as GaussLegendre4,
@@ -40,4 +65,4 @@ from ._trajectory.term import LagrangianTerm as LagrangianTerm
 from ._trajectory.variational import VariationalMidpoint as VariationalMidpoint
 
 
-__version__ = importlib.metadata.version("lagrax")
+__version__ = _metadata.version("lagrax")

@@ -6,7 +6,6 @@ values only when they are concrete (an eager call), so that user errors surface 
 point calls them once, before any work: the hot path is never checked.
 """
 
-import contextlib
 import linecache
 import math
 import os
@@ -16,8 +15,9 @@ import weakref
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax._src import checkify as checkify_internals  # the per-primitive check rules
-from jax.experimental import checkify
+from jax.extend import core as jex_core
+
+from ._jaxpr import interpreter
 
 
 def is_concrete(*xs) -> bool:
@@ -150,8 +150,8 @@ def positive_scalar(x, name: str, dtype, *, optional: bool = False):
         # weakly typed scalar compiles an XLA computation on a first call).
         if not (math.isfinite(x) and x > 0):
             raise ValueError(f"`{name}` must be a positive finite number; got {x}.")
-        # (A NumPy scalar: a `jnp` array here is a device transfer, ~12 µs each and
-        # several times that right after a sweep, before every dispatch; measured.)
+        # (A NumPy scalar: a `jnp` array here would be a device transfer before
+        # every dispatch.)
         return np.asarray(x, dtype)
     x = as_real_array(x, name)
     if jnp.ndim(x) != 0:
@@ -265,18 +265,146 @@ def _probed(f) -> set:
         return set()
 
 
+# ------------------------------------------------------ out-of-range indexing
+#
+# JAX clamps an out-of-range index silently (`q[1]` of a shape-`(1,)` `q` reads `q[0]`).
+# The check below evaluates the user's jaxpr at concrete values and looks at the index
+# operands of every gather, dynamic slice and scatter before binding it.
+
 _LAGRAX = os.path.dirname(os.path.abspath(__file__))
 
+# A gather that asks for clamping or filling (`jnp.take(..., mode="clip")`,
+# `x.at[i].get(mode="fill")`) gets what it asks for. Plain indexing (`q[i]`, `q[idx]`)
+# gathers with `PROMISE_IN_BOUNDS` or slices dynamically, and is checked.
+_EXPLICIT_MODES = (
+    jax.lax.GatherScatterMode.CLIP,
+    jax.lax.GatherScatterMode.FILL_OR_DROP,
+)
 
-def _where(error) -> str:
-    """` at file:line (`source`)`: the innermost frame of a checkify `error` outside
-    JAX and lagrax's private modules (the user's indexing), or `""`."""
-    for frame in getattr(error.traceback_info, "frames", ()):
+
+def _clamps(eqn) -> bool:
+    """Whether `eqn` indexes at run-time indices that JAX would clamp silently."""
+    name = eqn.primitive.name
+    if name == "gather":
+        return eqn.params["mode"] not in _EXPLICIT_MODES
+    return name in ("dynamic_slice", "dynamic_update_slice") or name.startswith(
+        "scatter"
+    )
+
+
+def _indexes_dynamically(jaxpr) -> bool:
+    """Whether `jaxpr` (or a jaxpr nested in it: calls, branches, loop bodies)
+    has an equation that `_clamps`."""
+    return any(
+        _clamps(eqn)
+        or any(
+            _indexes_dynamically(sub) for sub in jex_core.jaxprs_in_params(eqn.params)
+        )
+        for eqn in interpreter.equations(jaxpr, custom=True)
+    )
+
+
+def _out_of_range(eqn, ins):
+    """`(index, axis, size)` of the first out-of-range index of an equation that
+    `_clamps`, at the concrete operands `ins`, or None."""
+    name, params = eqn.primitive.name, eqn.params
+    shape = eqn.invars[0].aval.shape
+    if name == "dynamic_slice":
+        axes, sizes, starts = range(len(shape)), params["slice_sizes"], ins[1:]
+    elif name == "dynamic_update_slice":
+        axes, sizes, starts = range(len(shape)), eqn.invars[1].aval.shape, ins[2:]
+    elif name == "gather":
+        axes = params["dimension_numbers"].start_index_map
+        sizes = [params["slice_sizes"][a] for a in axes]
+        starts = ins[1]
+    else:  # a scatter: the window of `updates` in each operand dimension
+        dn = params["dimension_numbers"]
+        windows = iter(eqn.invars[2].aval.shape[d] for d in dn.update_window_dims)
+        unit = set(dn.inserted_window_dims) | set(dn.operand_batching_dims)
+        window = [1 if d in unit else next(windows) for d in range(len(shape))]
+        axes = dn.scatter_dims_to_operand_dims
+        sizes = [window[a] for a in axes]
+        starts = ins[1]
+    axes = list(axes)
+    starts = np.asarray(starts).reshape(-1, len(axes))
+    upper = np.array([shape[a] - size for a, size in zip(axes, sizes)])
+    bad = ((starts < 0) | (starts > upper)).ravel()
+    if not bad.any():
+        return None
+    row, col = divmod(int(np.argmax(bad)), len(axes))
+    return int(starts[row, col]), axes[col], shape[axes[col]]
+
+
+class _OutOfRange(Exception):
+    def __init__(self, eqn, found):
+        self.eqn, self.found = eqn, found
+
+
+def _run(closed, args):
+    return interpreter.evaluate(
+        closed.jaxpr, closed.consts, args, _checked, custom=True
+    )
+
+
+def _cond(params, ins):
+    branches = params["branches"]
+    return _run(branches[int(np.clip(ins[0], 0, len(branches) - 1))], ins[1:])
+
+
+def _while(params, ins):
+    nc, nb = params["cond_nconsts"], params["body_nconsts"]
+    cconsts, bconsts, carry = ins[:nc], ins[nc : nc + nb], ins[nc + nb :]
+    while bool(_run(params["cond_jaxpr"], [*cconsts, *carry])[0]):
+        carry = _run(params["body_jaxpr"], [*bconsts, *carry])
+    return carry
+
+
+def _scan(params, ins):
+    nc, nk = params["num_consts"], params["num_carry"]
+    consts, carry, xs = ins[:nc], ins[nc : nc + nk], ins[nc + nk :]
+    steps = range(params["length"])
+    ys = [None] * len(steps)
+    for i in reversed(steps) if params["reverse"] else steps:
+        outs = _run(params["jaxpr"], [*consts, *carry, *(x[i] for x in xs)])
+        carry, ys[i] = outs[:nk], outs[nk:]
+    avals = params["jaxpr"].out_avals[nk:]
+    return [
+        *carry,
+        *(
+            jnp.stack([y[j] for y in ys]) if ys else jnp.zeros((0, *a.shape), a.dtype)
+            for j, a in enumerate(avals)
+        ),
+    ]
+
+
+# Control flow whose bodies are evaluated with the check where they index.
+_NESTED = {"cond": _cond, "while": _while, "scan": _scan}
+
+
+def _checked(eqn, ins):
+    """The interpreter's rule: `eqn` bound at the concrete `ins`, once its indices
+    are checked."""
+    if _clamps(eqn):
+        found = _out_of_range(eqn, ins)
+        if found is not None:
+            raise _OutOfRange(eqn, found)
+    elif eqn.primitive.name in _NESTED and any(
+        _indexes_dynamically(sub) for sub in jex_core.jaxprs_in_params(eqn.params)
+    ):
+        return _NESTED[eqn.primitive.name](eqn.params, ins)
+    return interpreter.bind(eqn, ins)
+
+
+def _where(eqn) -> str:
+    """` at file:line (`source`)`: the innermost frame of the equation's traceback
+    outside JAX and lagrax's private modules (the user's indexing), or `""`."""
+    traceback = getattr(eqn.source_info, "traceback", None)
+    for frame in getattr(traceback, "frames", ()):
         path = os.path.abspath(frame.file_name)
         if (
             "site-packages" in path
             or f"{os.sep}jax{os.sep}" in path
-            or os.path.dirname(path) == _LAGRAX
+            or path.startswith(os.path.join(_LAGRAX, "_"))
         ):
             continue
         line = linecache.getline(path, frame.line_num).strip()
@@ -285,52 +413,9 @@ def _where(error) -> str:
     return ""
 
 
-@contextlib.contextmanager
-def _explicit_gather_modes_unchecked():
-    """checkify flags every gather whose index is out of range, whatever its mode; a
-    gather with an explicit `mode="clip"` or `mode="fill"` (`jnp.take(..., mode=...)`,
-    `x.at[i].get(mode=...)`) asks for that behaviour, so it is exempt while `f` is
-    traced here. Plain indexing (`q[i]`, `q[idx]`) gathers with `PROMISE_IN_BOUNDS`
-    or slices dynamically, and stays checked. The rule is restored on exit."""
-    rules = checkify_internals.error_checks
-    checked = rules[jax.lax.gather_p]
-
-    def rule(error, enabled_errors, operand, start_indices, **params):
-        if params["mode"] in (
-            jax.lax.GatherScatterMode.CLIP,
-            jax.lax.GatherScatterMode.FILL_OR_DROP,
-        ):
-            return error, jax.lax.gather_p.bind(operand, start_indices, **params)
-        return checked(error, enabled_errors, operand, start_indices, **params)
-
-    rules[jax.lax.gather_p] = rule
-    try:
-        yield
-    finally:
-        rules[jax.lax.gather_p] = checked
-
-
 def _concrete(x):
     """`x` if concrete, else zeros of its shape and dtype (a value to probe with)."""
     return x if is_concrete(x) else np.zeros(jnp.shape(x), jnp.result_type(x))
-
-
-_DYNAMIC_INDEXING = frozenset({"gather", "dynamic_slice", "dynamic_update_slice"})
-
-
-def _indexes_dynamically(jaxpr) -> bool:
-    """Whether `jaxpr` (or a jaxpr nested in it) gathers, scatters or slices at
-    indices known only at run time."""
-    for eqn in jaxpr.eqns:
-        name = eqn.primitive.name
-        if name in _DYNAMIC_INDEXING or name.startswith("scatter"):
-            return True
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, tuple | list) else (param,):
-                sub = getattr(sub, "jaxpr", sub)
-                if hasattr(sub, "eqns") and _indexes_dynamically(sub):
-                    return True
-    return False
 
 
 def check_indices(f, name: str, signature: str, *args):
@@ -338,54 +423,46 @@ def check_indices(f, name: str, signature: str, *args):
 
     JAX clamps an out-of-range index silently (`q[1]` of a shape-`(1,)` `q` reads
     `q[0]`), so a Lagrangian written for more coordinates than it is given would
-    return wrong numbers without an error. `f` is traced once under
-    `checkify.index_checks` and the jaxpr evaluated outside any enclosing `jit`/`vmap`
+    return wrong numbers without an error. Where `f`'s jaxpr gathers, slices or
+    scatters at run-time indices, it is evaluated outside any enclosing `jit`/`vmap`
     trace, at the arguments where they are concrete and at zeros of their shape where
-    they are traced (and likewise for traced values `f` closes over). Validation only:
-    nothing of this is staged into the computation. Other failures of `f` are left to
-    the other checks.
+    they are traced (and likewise for traced values `f` closes over), and every such
+    index is checked against the shape it indexes. Validation only: nothing of this is
+    staged into the computation. Other failures of `f` are left to the other checks.
     """
     key = tuple((jnp.shape(a), jnp.result_type(a)) for a in args)
-    if key in _probed(f):  # (jax.eval_shape, before, needs weakrefs too)
+    if key in _probed(f):
         return
     try:
-        if not _indexes_dynamically(jax.make_jaxpr(f)(*args).jaxpr):
-            # Static indices out of range fail while tracing; only gathers and
-            # dynamic slices can clamp silently. (Evaluating the checked jaxpr op
-            # by op compiles each op on a first call: ~0.1 s, measured.)
-            _probed(f).add(key)
-            return
-        checked = checkify.checkify(f, errors=checkify.index_checks)
-        with _explicit_gather_modes_unchecked():
-            jaxpr, shapes = jax.make_jaxpr(checked, return_shape=True)(*args)
-        with jax.core.eval_context():
-            flat = jax.core.eval_jaxpr(
-                jaxpr.jaxpr,
-                [_concrete(c) for c in jaxpr.consts],
-                *[_concrete(a) for a in jax.tree_util.tree_leaves(args)],
-            )
-            error, _ = jax.tree_util.tree_unflatten(
-                jax.tree_util.tree_structure(shapes), flat
-            )
-            error = error.get_exception()
+        closed = jax.make_jaxpr(f)(*args)
+        if _indexes_dynamically(closed.jaxpr):
+            # (Evaluated op by op: each op compiles on a first call.)
+            with jax.core.eval_context():
+                interpreter.evaluate(
+                    closed.jaxpr,
+                    [_concrete(c) for c in closed.consts],
+                    [_concrete(a) for a in jax.tree_util.tree_leaves(args)],
+                    _checked,
+                    custom=True,
+                )
+    except _OutOfRange as e:
+        index, axis, size = e.found
+        shape = tuple(e.eqn.invars[0].aval.shape)
+        shapes = ", ".join(f"{jnp.dtype(d).name}{list(s)}" for s, d in key)
+        raise ValueError(
+            f"`{name}` must index its arguments within their shapes; {signature} "
+            f"with arguments {shapes} got out-of-bounds indexing for array of shape "
+            f"{shape}: index {index} is out of bounds for axis {axis} with size "
+            f"{size}{_where(e.eqn)}. JAX would clamp the index silently (q[1] of a q "
+            "of shape (1,) reads q[0]) and give wrong numbers: index only the "
+            "coordinates the function is given."
+        ) from None
     except (TypeError, ValueError) as e:
         if str(e).startswith("`"):  # a lagrax message from a nested check
             raise
         return  # a broken `f` is reported by the other checks
     except Exception:
         return
-    if error is not None:
-        shapes = ", ".join(f"{jnp.dtype(d).name}{list(s)}" for s, d in key)
-        message = str(error).strip().rstrip(".")
-        if "Tracer" in message:  # the index itself is not known here, its place is
-            shape = tuple(getattr(error, "operand_shape", ()))
-            message = f"an out-of-bounds index into an array of shape {shape}"
-        raise ValueError(
-            f"`{name}` must index its arguments within their shapes; {signature} "
-            f"with arguments {shapes} got {message}{_where(error)}. JAX would clamp "
-            "the index silently (q[1] of a q of shape (1,) reads q[0]) and give "
-            "wrong numbers: index only the coordinates the function is given."
-        )
     _probed(f).add(key)
 
 
@@ -438,9 +515,33 @@ def prepare(L, q, qdot, t, force=None, names=("q", "qdot", "t")):
 
 
 # Lagrangians already found to be of one degree of freedom, per dtype: the check
-# traces L (~1.3 ms, a sixth of a 4096-amplitude sweep's call on one core); a
-# function object's shape contract does not change between calls.
+# traces L, a noticeable share of a warm sweep's call, and a function object's shape
+# contract does not change between calls.
 _ONE_DOF_OK: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _coordinates_read(L, dtype, most: int = 6):
+    """The fewest coordinates, 2 to `most`, at which `L` returns a scalar, or None.
+
+    A Lagrangian written for n coordinates fails on one in many ways (`a, b = q`, a
+    matrix of shape (n, n), `q[1]`): trying wider shapes names n, whatever the way."""
+    t = jax.ShapeDtypeStruct((), dtype)
+    for n in range(2, most + 1):
+        q = jax.ShapeDtypeStruct((n,), dtype)
+        try:
+            if jax.eval_shape(L, q, q, t).shape == ():
+                return n
+        except Exception:  # noqa: BLE001 - the user's code, at a shape it may refuse
+            continue
+    return None
+
+
+class CoordinatesError(ValueError):
+    """A Lagrangian of `coordinates` coordinates where one was expected."""
+
+    def __init__(self, message: str, coordinates: int):
+        super().__init__(message)
+        self.coordinates = coordinates
 
 
 def check_one_dof(L, dtype):
@@ -452,9 +553,24 @@ def check_one_dof(L, dtype):
     except TypeError:  # not weak-referenceable or not hashable: check every time
         pass
     z = np.zeros((1,), dtype)  # (NumPy: `jnp.zeros` compiles on a first call)
-    check_lagrangian(
-        L, z, z, np.zeros((), dtype), what=" of one degree of freedom, q of shape (1,)"
-    )
+    try:
+        check_lagrangian(
+            L,
+            z,
+            z,
+            np.zeros((), dtype),
+            what=" of one degree of freedom, q of shape (1,)",
+        )
+    except (TypeError, ValueError) as e:
+        n = _coordinates_read(L, dtype)
+        if n is None:
+            raise
+        raise CoordinatesError(
+            "`L` must be a Lagrangian of one coordinate, q of shape (1,); it has "
+            f"{n} coordinates (L(q, qdot, t) runs with q and qdot of shape ({n},)); "
+            f"for more coordinates use lagrax.simulate. At shape (1,): {e}",
+            n,
+        ) from None
     try:
         _ONE_DOF_OK.setdefault(L, set()).add(dtype)
     except TypeError:

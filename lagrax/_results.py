@@ -4,9 +4,8 @@ r"""What became of a period: one status enumeration for `period`, `sweep_periods
 `RESULTS` is an `equinox.Enumeration` (as `diffrax.RESULTS`): each member's value is
 its own message, and `RESULTS.<member>.error_if(x, pred)` raises that message under
 `jit` as well as eagerly. Arrays of statuses (`SweepResult.status`,
-`QuadratureResult.status`, the CLI's CSV/NPZ) hold the *int view*: the member's
-position in the enumeration. That mapping is fixed; new members only ever go at the
-end.
+`QuadratureResult.status`, the CLI's CSV/NPZ) hold the *int view*, the codes below.
+That mapping is fixed; new members only ever go at the end.
 
 | code | member | meaning |
 | --- | --- | --- |
@@ -35,8 +34,11 @@ gives its message.
 """  # noqa: E501
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ._checks import is_concrete
 
 
 class RESULTS(eqx.Enumeration):
@@ -108,39 +110,79 @@ class RESULTS(eqx.Enumeration):
     )
 
 
+#: The int view of `RESULTS`: `{code: member name}`, e.g. `STATUS_CODES[3]` is
+#: `"singular_mass"`. Fixed: new members only ever go at the end.
+STATUS_CODES = {
+    0: "success",
+    1: "not_oscillating",
+    2: "max_steps",
+    3: "singular_mass",
+    4: "root_find_failed",
+    5: "energy_drift",
+    6: "solver_failed",
+    7: "nonfinite_input",
+    8: "unresolved",
+    9: "not_natural",
+    10: "escapes",
+    11: "nonfinite_period",
+    12: "tolerance_not_met",
+    13: "coordinate_singularity",
+    14: "not_symmetric",
+}
+_MEMBERS = [getattr(RESULTS, name) for name in STATUS_CODES.values()]
+assert len(_MEMBERS) == len(RESULTS), "every member of RESULTS needs its code"
+
+_CODE = {name: code for code, name in STATUS_CODES.items()}
+SUCCESS = _CODE["success"]
+NOT_OSCILLATING = _CODE["not_oscillating"]
+MAX_STEPS = _CODE["max_steps"]
+SINGULAR_MASS = _CODE["singular_mass"]
+ROOT_FIND_FAILED = _CODE["root_find_failed"]
+ENERGY_DRIFT = _CODE["energy_drift"]
+SOLVER_FAILED = _CODE["solver_failed"]
+NONFINITE_INPUT = _CODE["nonfinite_input"]
+UNRESOLVED = _CODE["unresolved"]
+NOT_NATURAL = _CODE["not_natural"]
+ESCAPES = _CODE["escapes"]
+NONFINITE_PERIOD = _CODE["nonfinite_period"]
+TOLERANCE_NOT_MET = _CODE["tolerance_not_met"]
+COORDINATE_SINGULARITY = _CODE["coordinate_singularity"]
+NOT_SYMMETRIC = _CODE["not_symmetric"]
+
+
 def status_code(result: RESULTS):
     """The int view of a `RESULTS` member (an int32 array under `jit`/`vmap`)."""
-    return result._value
-
-
-def status_result(code) -> RESULTS:
-    """The `RESULTS` member of an int status code (or an array of them)."""
-    return eqx.tree_at(
-        lambda r: r._value, RESULTS.success, jnp.asarray(code, jnp.int32)
+    # By the enumeration's public comparisons: its members' own int values are
+    # equinox's business.
+    return jnp.select(
+        [result == member for member in _MEMBERS],
+        [np.int32(code) for code in STATUS_CODES],
+        np.int32(-1),
     )
 
 
-#: The int view of `RESULTS`: `{code: member name}`, e.g. `STATUS_CODES[3]` is
-#: `"singular_mass"`.
-STATUS_CODES = {
-    int(status_code(item)): name for name, item in RESULTS._name_to_item.items()
-}
+def status_result(code) -> RESULTS:
+    """The `RESULTS` member of an int status code (or an array of them, under `jit`
+    too, where an unknown code reads as `success`).
 
-SUCCESS = int(status_code(RESULTS.success))
-NOT_OSCILLATING = int(status_code(RESULTS.not_oscillating))
-MAX_STEPS = int(status_code(RESULTS.max_steps))
-SINGULAR_MASS = int(status_code(RESULTS.singular_mass))
-ROOT_FIND_FAILED = int(status_code(RESULTS.root_find_failed))
-ENERGY_DRIFT = int(status_code(RESULTS.energy_drift))
-SOLVER_FAILED = int(status_code(RESULTS.solver_failed))
-NONFINITE_INPUT = int(status_code(RESULTS.nonfinite_input))
-UNRESOLVED = int(status_code(RESULTS.unresolved))
-NOT_NATURAL = int(status_code(RESULTS.not_natural))
-ESCAPES = int(status_code(RESULTS.escapes))
-NONFINITE_PERIOD = int(status_code(RESULTS.nonfinite_period))
-TOLERANCE_NOT_MET = int(status_code(RESULTS.tolerance_not_met))
-COORDINATE_SINGULARITY = int(status_code(RESULTS.coordinate_singularity))
-NOT_SYMMETRIC = int(status_code(RESULTS.not_symmetric))
+    **Raises:** `ValueError` for a concrete code that is not one of `STATUS_CODES`.
+    """
+    code = jnp.asarray(code, jnp.int32)
+    if is_concrete(code) and not np.isin(np.asarray(code), list(STATUS_CODES)).all():
+        raise ValueError(
+            f"`code` must be one of the integer status codes {sorted(STATUS_CODES)}; "
+            f"got {np.asarray(code)!r}."
+        )
+
+    def member(c):
+        out = _MEMBERS[0]
+        for k, item in enumerate(_MEMBERS[1:], 1):
+            out = RESULTS.where(c == k, item, out)
+        return out
+
+    for _ in range(code.ndim):  # (`RESULTS.where` takes a scalar predicate)
+        member = jax.vmap(member)
+    return member(code)
 
 
 def status_message(code) -> str:

@@ -86,3 +86,25 @@ def test_kapitza_frequency_scales_as_its_formula():
     np.testing.assert_allclose(
         driven_pendulum.kapitza_critical_frequency(a=0.2, l=1.0, g=9.81), w / 2
     )
+
+
+# Indexing inside branches and loop bodies is checked as well (q has one coordinate).
+_SUM_SQUARES = {
+    "cond": lambda q, t: jax.lax.cond(t > -1.0, lambda: q[2] ** 2, lambda: q[0] ** 2),
+    "while_loop": lambda q, t: jax.lax.while_loop(
+        lambda c: c[0] < 3, lambda c: (c[0] + 1, c[1] + q[c[0]] ** 2), (0, 0.0)
+    )[1],
+    "fori_loop": lambda q, t: jax.lax.fori_loop(0, 3, lambda i, a: a + q[i] ** 2, 0.0),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_SUM_SQUARES))
+def test_out_of_range_index_in_control_flow_is_an_error(name):
+    V = _SUM_SQUARES[name]
+    L = lambda q, qdot, t: 0.5 * jnp.sum(qdot**2) - V(q, t)
+    with pytest.raises(ValueError, match="`L` must index its arguments") as info:
+        lagrax.energy(L, jnp.ones(1), jnp.ones(1))
+    assert "test_checks.py:" in str(info.value)  # the line that indexes
+    # On as many coordinates as it indexes: E = T + V, V = 1 + 4 + 9 (or 9).
+    E = lagrax.energy(L, jnp.array([1.0, 2.0, 3.0]), jnp.ones(3))
+    np.testing.assert_allclose(E, 1.5 + (9.0 if name == "cond" else 14.0))

@@ -1,5 +1,6 @@
 import dataclasses
 import os
+import stat
 import sys
 import textwrap
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax._cli import main as _cli
+from lagrax._cli import chart, main as _cli, run as cli_run, targets
 from lagrax.systems import pendulum
 
 
@@ -44,6 +45,11 @@ USER_MODULE = textwrap.dedent(
 
     def vector(q, qdot, t):
         return 0.5 * qdot**2 + jnp.cos(q)
+
+
+    def unpacked(q, qdot, t):
+        a, b = q
+        return 0.5 * qdot @ qdot + jnp.cos(a) + jnp.cos(b)
 
 
     def two(a, b):
@@ -104,7 +110,8 @@ def test_bad_arguments_exit_2_with_one_line(capsys, argv):
         ("my_systems:not_callable", [], "not callable"),
         ("my_systems:two", [], "takes 2 required argument(s)"),
         ("my_systems:double", [], "has 2 coordinates"),
-        ("my_systems:vector", [], "must return a scalar; got shape (1,)"),
+        ("my_systems:vector", [], "must return a real floating-point scalar"),
+        ("my_systems:unpacked", [], "has 2 coordinates"),
         ("my_systems:pendulum", ["--param", "gravity=2"], "no parameter 'gravity'"),
         ("my_systems:L", ["--param", "g=2"], "not a factory"),
         ("my_systems:broken_factory", [], "raised RuntimeError: no such physics"),
@@ -155,7 +162,18 @@ def test_unwritable_output_fails_before_the_sweep(capsys, monkeypatch, tmp_path)
     assert rc == 2
 
 
-def test_sweep_writes_table_csv_and_two_panel_chart(capsys, tmp_path):
+@pytest.fixture
+def umask_022():
+    old = os.umask(0o022)
+    yield
+    os.umask(old)
+
+
+def mode(path):
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+def test_sweep_writes_table_csv_and_two_panel_chart(capsys, tmp_path, umask_022):
     out_csv = tmp_path / "res.csv"
     chart = tmp_path / "chart.png"
     svg = tmp_path / "chart.svg"
@@ -184,6 +202,8 @@ def test_sweep_writes_table_csv_and_two_panel_chart(capsys, tmp_path):
     image = matplotlib.image.imread(chart)
     assert chart.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and image.ndim == 3
     assert not os.path.exists(str(out_csv) + ".partial")
+    # Readable by others, as the umask says (not 0600 from a temporary file).
+    assert mode(out_csv) == mode(chart) == 0o644
     # The same chart as SVG: two axes, T/T0 above and the relative error below.
     rc, _, err = run(capsys, *argv, "--plot", svg, "--quiet")
     assert rc == 0, err
@@ -199,7 +219,7 @@ def test_chart_marks_failures_and_plots_the_error(tmp_path):
     status = np.zeros(20, np.int32)
     status[[3, 17]] = 2
     period[[3, 17]] = np.nan
-    target = _cli._Target("pendulum", None, "θ₀ (rad)", T0=2 * np.pi)
+    target = targets.Target("pendulum", None, "θ₀ (rad)", T0=2 * np.pi)
     target.extra["reference"] = "exact"
     r = {
         "system": "pendulum",
@@ -210,8 +230,8 @@ def test_chart_marks_failures_and_plots_the_error(tmp_path):
         "status": status,
     }
     target.exact = exact_pendulum
-    _cli._add_reference(r, target, None)
-    fig = _cli._chart([r], 1e-13)
+    cli_run.add_reference(r, target, None)
+    fig = chart.chart([r], 1e-13)
     top, bottom = fig.axes
     assert top.get_ylabel() == "T / T₀" and bottom.get_yscale() == "log"
     failed = [line for line in top.get_lines() if line.get_marker() == "x"]
@@ -246,6 +266,12 @@ def test_user_module_by_attr_and_by_path_with_and_without_param(
             assert set(f["reference_kind"]) == {"none"}
             assert np.all(f["status"] == 0)
             results[target] = (f["amplitude"], f["period"])
+            # T₀ from the small oscillations at the bottom of the well: 2π/√g.
+            g = 4.0 if "g=4" in extra else 1.0
+            np.testing.assert_allclose(
+                f["T_over_T0"], f["period"] / (2 * np.pi / np.sqrt(g)), rtol=1e-12
+            )
+        assert "T/T0" in stdout.splitlines()[0]
     amplitude, period = results["my_systems:L"]
     np.testing.assert_allclose(period, exact_pendulum(amplitude), rtol=1e-12)
     np.testing.assert_array_equal(results[f"{user_module}:L"][1], period)
@@ -286,6 +312,8 @@ def test_systems_lists_builtins_with_parameters_and_defaults(capsys):
     assert "exact period" in lines["pendulum"]
     assert "no exact period" in lines["asymmetric_well"]
     assert "2 coordinates" in lines["double_pendulum"]
+    # A function-valued default by its name, not its repr with an address.
+    assert "potential=harmonic " in lines["rectilinear"] and " at 0x" not in out
 
 
 def test_builtin_without_exact_period_uses_quadrature_on_request(capsys, tmp_path):
@@ -313,7 +341,9 @@ def test_failures_exit_1_and_are_named(capsys, tmp_path, user_module):
     assert "1 amplitudes failed" in err and "does not oscillate" in err
 
 
-def test_interrupted_sweep_leaves_no_file_and_resumes(capsys, monkeypatch, tmp_path):
+def test_interrupted_sweep_leaves_no_file_and_resumes(
+    capsys, monkeypatch, tmp_path, umask_022
+):
     out_npz = tmp_path / "res.npz"
     argv = [
         "sweep", "pendulum", "--count", "100", "--chunk-size", "8", "--devices", "1",
@@ -332,10 +362,9 @@ def test_interrupted_sweep_leaves_no_file_and_resumes(capsys, monkeypatch, tmp_p
     rc, out, err = run(capsys, *argv)
     assert rc == 130 and "resume" in err
     assert not out_npz.exists()
-    assert sorted(os.listdir(str(out_npz) + ".partial")) == [
-        "manifest.json",
-        "pendulum-00000.npz",
-    ]
+    partial = str(out_npz) + ".partial"
+    assert sorted(os.listdir(partial)) == ["manifest.json", "pendulum-00000.npz"]
+    assert mode(os.path.join(partial, "pendulum-00000.npz")) == 0o644
     calls.clear()
 
     def count(*args, **kwargs):

@@ -71,7 +71,7 @@ def test_the_default_falls_back_where_the_program_is_too_large_to_unroll():
     # The θ-form cycloid's order-20 program has ~5000 equations: the kernel would
     # loop over the orders, 5x slower than Dopri8 (measured); the same pendulum in
     # u = cos(θ/2) (harmonic) and the plain pendulum unroll and step with Taylor.
-    from lagrax._period.kernel import resolve_solver
+    from lagrax._period.solver import resolve_solver
 
     default = lagrax.Taylor(fallback=dfx.Dopri8())
     f64 = jnp.float64

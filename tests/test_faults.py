@@ -4,9 +4,10 @@ What tests/test_period.py and tests/test_cli.py already cover is not repeated he
 (a NaN and an equilibrium lane next to good ones; a KeyboardInterrupt between blocks of
 a first run; bad arguments of the common kinds). Added here: every failure kind in one
 batch with the others bit-identical, chunk-size independence bit for bit (failures
-included), an interrupted rerun that keeps the earlier complete output, an interrupt
-inside the final write, a sweep killed with SIGKILL and resumed, failing amplitudes
-counted by the command line (exit 1), and the remaining bad-argument kinds.
+included), an interrupted rerun that keeps the earlier complete output and computes a
+damaged checkpoint again, an interrupt inside the final write, a sweep killed with
+SIGKILL and resumed, failing amplitudes counted by the command line (exit 1), and the
+remaining bad-argument kinds.
 """
 
 import os
@@ -230,8 +231,16 @@ def test_interrupted_rerun_keeps_the_earlier_complete_output(
         assert out.read_bytes() == ref_bytes
         assert _leftovers(tmp_path) == [] and _leftovers(partial) == []
 
-    # The rerun resumes from the checkpoints (no block recomputed) and agrees bit
-    # for bit with an uninterrupted run.
+    # A piece those runs wrote is damaged (bytes flipped in its middle): the rerun
+    # names it, computes that block again and resumes the others from their
+    # checkpoints; the result agrees bit for bit with an uninterrupted run.
+    pieces = [f"pendulum-0000{b}.npz" for b in range(4)]
+    assert sorted(os.listdir(partial)) == ["manifest.json", *pieces]
+    piece = partial / "pendulum-00000.npz"
+    data = bytearray(piece.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 8] = bytes(b ^ 0xFF for b in data[middle : middle + 8])
+    piece.write_bytes(bytes(data))
     calls.clear()
 
     def count(*args, **kwargs):
@@ -239,8 +248,9 @@ def test_interrupted_rerun_keeps_the_earlier_complete_output(
         return real(*args, **kwargs)
 
     monkeypatch.setattr(lagrax, "sweep_periods", count)
-    rc, _, _ = _run(capsys, *ARGV, "--out", str(out))
-    assert rc == 0 and calls == []
+    rc, _, err = _run(capsys, *ARGV, "--out", str(out))
+    assert rc == 0 and len(calls) == 1, err
+    assert f"checkpoint {piece} is damaged" in err and "Traceback" not in err
     _assert_same(_load(out), ref)
     assert not os.path.exists(str(out) + ".partial")
 

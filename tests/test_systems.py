@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.integrate import solve_ivp
 from scipy.special import ellipkm1
 
 import lagrax
@@ -151,3 +152,35 @@ def test_old_names_are_aliases():
 def test_parameters_unknown_system():
     with pytest.raises(ValueError, match="`system` must be one of"):
         lagrax.systems.parameters("pendulm")
+
+
+@pytest.mark.parametrize(
+    "name",
+    [n for n, m in sorted(lagrax.systems.SYSTEMS.items()) if hasattr(m, "SWEEP")],
+)
+def test_sweep_spec_releases_where_the_period_says(name):
+    # What `lagrax sweep NAME` integrates (SWEEP.lagrangian at SWEEP.release_point of
+    # the amplitude) has the module's own exact period at that amplitude.
+    module = lagrax.systems.SYSTEMS[name]
+    spec = module.SWEEP
+    assert isinstance(spec, lagrax.systems.SweepSpec)
+    assert spec.method in ("matched", "quarter", "half", "full")
+    lo, hi = spec.amplitudes() if callable(spec.amplitudes) else spec.amplitudes
+    if spec.bounds is not None:
+        assert spec.bounds[0] < lo < hi <= spec.bounds[1]
+    if not hasattr(module, "period"):
+        return
+    amplitude = np.array([lo + 0.3 * (hi - lo), lo + 0.9 * (hi - lo)])
+    q0 = amplitude if spec.release_point is None else spec.release_point(amplitude)
+    L = (spec.lagrangian or module.lagrangian)(g=9.81)
+    # A quarter period from rest to the bottom (q̈ = 0), by SciPy: quick to set up,
+    # and independent of lagrax's own period machinery.
+    qddot = jax.jit(lambda q: lagrax.accelerations(L, q[None], jnp.zeros(1))[0])
+    rhs = lambda t, y: [y[1], float(qddot(y[0]))]
+    bottom = lambda t, y: float(qddot(y[0]))
+    bottom.terminal = True
+    for a, q in zip(amplitude, q0):
+        sol = solve_ivp(rhs, (0, 100), [q, 0.0], "DOP853", rtol=1e-12, atol=1e-12,
+                        events=bottom)  # fmt: skip
+        T = 4 * sol.t_events[0][0]
+        np.testing.assert_allclose(module.period(a, g=9.81), T, rtol=1e-9)

@@ -8,7 +8,7 @@ import pytest
 from jax.experimental import jet
 
 from lagrax._eom.mechanics import _accelerations
-from lagrax._taylor.coefficients import taylor_coefficients
+from lagrax._taylor.program import taylor_coefficients
 from lagrax.systems import asymmetric_well, cycloid, driven_pendulum
 
 

@@ -46,10 +46,10 @@ def test_events_are_located_inside_the_crossing_step(monkeypatch):
     fast = _sweep(PENDULUM, q0, **kw)
     steps = np.asarray(fast.num_steps)
     assert steps.mean() < 6.0, steps.mean()
-    import lagrax._period.kernel as kernel_module
+    import lagrax._period.events as events_module
 
-    monkeypatch.setattr(kernel_module, "_ROOT_LOW_ITERS", 0)
-    monkeypatch.setattr(kernel_module, "_ROOT_FULL_ITERS", 0)
+    monkeypatch.setattr(events_module, "_ROOT_LOW_ITERS", 0)
+    monkeypatch.setattr(events_module, "_ROOT_FULL_ITERS", 0)
     # A new function object: the kernel is traced again with the constants above.
     slow = _sweep(lambda q, qd, t: PENDULUM(q, qd, t), q0, **kw)
     assert np.all(np.asarray(slow.status) == 0)

@@ -186,7 +186,7 @@ def test_the_controllers_root_is_accurate_and_the_same_in_every_lane():
     # within 2 ulp of the exact root, and the same bits whatever a value's position
     # in the array (vector body or scalar remainder of XLA's loop), which a sweep's
     # lanes rely on (results independent of chunk size).
-    from lagrax._period.kernel import _root
+    from lagrax._stepper.controller import _root
 
     rng = np.random.default_rng(0)
     x = 10.0 ** rng.uniform(-12, 12, 37)

@@ -56,8 +56,7 @@ def _solve_definite(M, rhs):
     eps = jnp.finfo(M.dtype).eps
     # n <= 2 works on the scalar entries only: a reduction over M (`jnp.all`) or a
     # product with the whole (n, n) array stops XLA from fusing the solve with the
-    # Lagrangian's derivatives, which doubled the cost of a vmapped 1-DOF evaluation
-    # and cost 1.6x for 2 DOF (benchmarks/eom_overhead.py).
+    # Lagrangian's derivatives under `vmap`.
     if n == 1:
         a = M[0, 0]
         sign = jnp.where(a < 0, -1.0, 1.0).astype(M.dtype)
@@ -115,24 +114,17 @@ def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
         return jnp.where(ok, qddot, jnp.nan), M, ok
 
     if n <= 2:
-        # Derivatives and closed-form solve evaluated entry by entry (`_scalarize`):
-        # under `vmap` one fused loop over the lanes instead of 12-20 joined by
-        # pads, concatenates and small reductions; 3-8x faster for a double
-        # pendulum written from particle velocities (benchmarks/eom_overhead.py).
-        # For n >= 4 the scalar program measured slower than the array one (XLA
-        # splits it into many fusions that recompute shared terms), so larger n
-        # stays as it was.
+        # Derivatives and closed-form solve evaluated entry by entry (`scalarized`):
+        # under `vmap`, one fused loop over the lanes instead of 12-20 loops of tiny
+        # arrays joined by pads, concatenates and small reductions. For larger n the
+        # scalar program is the slower one (XLA splits it into many fusions that
+        # recompute shared terms). Figures: benchmarks/README.md (eom_overhead).
         qddot, M, ok = scalarized(solve, q, qdot, t)
         # XLA copies the whole scalar program (its sines and cosines) into every
-        # fusion that reads an entry of qddot or ok: in a Tsit5 stage loop, four
-        # copies for a particle-style double pendulum, 1.5-1.8x a hand-written EOM;
-        # fused, one copy and 0.63x (benchmarks/eom_overhead.py, one core, 256
-        # lanes, fixed steps). Entry by entry because a variadic reduce needs
-        # operands of one shape (stacking qddot first kept two copies: 1.1x).
-        # The same for n == 1 (cycloid 1.8x -> 1.3x, pendulum 1.0x -> 0.63x);
-        # the Taylor recurrences, which read this jaxpr, see the identity
-        # (`fusion_off`). In the period kernel it measured neutral (Dopri8 and
-        # Taylor, 4096 amplitudes, one core).
+        # fusion that reads an entry of qddot or ok; one fusion for all the outputs
+        # keeps one copy. Entry by entry, because a variadic reduce needs operands
+        # of one shape (a stacked qddot keeps a second copy). The Taylor
+        # recurrences, which read this jaxpr, see the identity (`fusion_off`).
         if fuse is not False:  # (None, the default, fuses)
             qddot, M, ok = _fused_entries(qddot, M, ok)
     else:
@@ -225,7 +217,8 @@ def mass_matrix(
     **Example:** for the pendulum $L = \frac12 r^2\dot\theta^2 + gr\cos\theta$,
 
     ```python
-    lagrax.mass_matrix(L, jnp.array([0.3]), jnp.array([0.0]))  # [[r**2]]
+    L = lagrax.systems.pendulum.lagrangian(r=2.0)
+    lagrax.mass_matrix(L, jnp.array([0.3]), jnp.array([0.0]))  # [[4.0]], m r² (m = 1)
     ```
 
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.
@@ -274,8 +267,14 @@ def energy(
     **Example:** conservation along a trajectory,
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
+    q0, qdot0 = jnp.array([1.0]), jnp.array([0.0])
+    ts = jnp.linspace(0.0, 10.0, 101)
     sol = lagrax.simulate(L, q0, qdot0, 0.0, 10.0, saveat=diffrax.SaveAt(ts=ts))
     h = jax.vmap(lambda q, v: lagrax.energy(L, q, v))(*sol.ys)
+    h[0]  # -cos(1.0), the energy at release (conserved to about rtol after)
     ```
 
     **Raises:** `TypeError`/`ValueError` on bad input, as `accelerations`.

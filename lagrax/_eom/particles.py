@@ -238,8 +238,13 @@ def generalized_force(
     **Example:**
 
     ```python
+    def positions(q, t):  # a pendulum of length 1 as a particle in the plane
+        return jnp.stack([jnp.sin(q[0]), -jnp.cos(q[0])])[None]
+
+    L = lagrax.systems.pendulum.lagrangian()
+    q0, qdot0 = jnp.array([1.0]), jnp.array([0.0])
     drag = lagrax.generalized_force(positions, lambda r, v, t: -0.1 * v)
-    lagrax.simulate(L, q0, qdot0, 0.0, 10.0, force=drag)
+    sol = lagrax.simulate(L, q0, qdot0, 0.0, 10.0, force=drag)
     ```
     """
     check_callable(positions, "positions", "a function positions(q, t) -> (N, d)")

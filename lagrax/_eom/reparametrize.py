@@ -78,7 +78,7 @@ def reparametrize(
     # Equal to 8 R² udot² - 2 g R u² (lagrax.systems.cycloid.lagrangian_u) for
     # |u| < 1; at the cusps |u| = 1 arccos itself is singular, so there use the
     # closed form.
-    lagrax.accelerations(L_u, jnp.array([0.5]), jnp.array([0.0]))  # -(g/4R) * 0.5
+    lagrax.accelerations(L_u, jnp.array([0.5]), jnp.array([0.0]))  # -(9.81 / 4) * 0.5
     ```
     """
     check_callable(L, "L", "a function L(q, qdot, t) -> scalar")

@@ -23,8 +23,8 @@ _STATE = threading.local()
 @contextlib.contextmanager
 def fusion_off():
     """Within this context `one_fusion` is the plain identity: for tracers that read
-    the jaxpr themselves (the Taylor recurrences of `_taylor.py` have no rule for the
-    variadic `reduce`, and need none for an identity)."""
+    the jaxpr themselves (the Taylor recurrences have no rule for the variadic
+    `reduce`, and need none for an identity)."""
     before = getattr(_STATE, "off", False)
     _STATE.off = True
     try:
@@ -44,18 +44,11 @@ def one_fusion(values: dict) -> dict:
     identity: the reduction's own JVP rule fails on the symbolic zeros of integer
     tangents).
 
-    Measured (one core of a 2-core AMD EPYC, float64, jax 0.10.2):
-
-    - the sweep kernel's Taylor step, whose step length, position and velocity
-      share one straight-line recurrence: six copies of it per iteration without,
-      ~460 ns per lane-step (4096 lanes); ~110 ns with, within 10% of the same
-      program with a single output.
-    - the sweep kernel's lane update around the step (the new values of ~20 lane
-      fields, ~30 small fusions and copies per iteration without): Dopri8 +15-20%,
-      the default sweep +4-6%. (In round 2, one fusion of the step and the lane
-      update together had cost Dopri8 30%: keep the step a fusion of its own.)
-    - the accelerations of a double pendulum written from particle velocities,
-      inside a fixed-step Tsit5 solve (256 lanes): see `_mechanics._accelerations`.
+    Used for the sweep kernel's Taylor step (its step length, position and velocity
+    share one straight-line recurrence, otherwise copied into each of their
+    fusions), for the kernel's lane update around the step (kept a fusion of its
+    own: one fusion of the step and the update together runs slower), and for the
+    accelerations of systems written from particle velocities.
 
     **Arguments:** `values`, a dict of arrays of one shape (any dtypes: a variadic
     reduce takes operands of one shape).
@@ -92,7 +85,6 @@ def _fused(*vals):
 @_fused.defjvp
 def _fused_jvp(primals, tangents):
     # The identity: tangents pass through (the reduction's own rule chokes on the
-    # symbolic zeros of integer fields). Fusing the tangents too turned the three
-    # fusions of 7,000-8,500 ops of a gradient's compiled Dopri8 step into one of
-    # ~16,000: no faster to compile (measured), so they pass as they are.
+    # symbolic zeros of integer fields). Tangents are not fused: one fusion of a
+    # gradient's whole step compiles no faster than its few large ones.
     return _fused(*primals), tuple(tangents)

@@ -5,22 +5,24 @@ Why: the autodiff equations of motion of a Lagrangian written with small vectors
 lane, a program of tiny arrays: the $n+1$ tangent directions of the forward-over-
 reverse pass, the transposes of indexing (`pad`), of `jnp.array` (`slice`), and
 `dot_general`/`reduce_sum` over axes of length 2 or 3. Under `vmap` over lanes XLA on
-a CPU compiles that into 12–20 separate loops over the batch, joined by
+a CPU compiles that into a dozen or more separate loops over the batch, joined by
 concatenates, pads, and small reductions it hands to a library call, each loop
 writing and re-reading memory, and recomputes shared sines and cosines in several of
-them (benchmarks/eom_overhead.py: 3–8× a hand-written closed form, which is one
-fused loop). Evaluated entry by entry, the same program is a graph of scalar
+them (`benchmarks/eom_overhead.py` compares it with a hand-written closed form, which
+is one fused loop). Evaluated entry by entry, the same program is a graph of scalar
 operations; under `vmap` every operation is then elementwise over the lanes, and XLA
 fuses it into one or two loops, with common subexpressions merged.
 
-`scalarized(f)(*args)` traces `f` to a jaxpr once and re-evaluates every equation on
-NumPy object arrays of JAX scalars: elementwise primitives entry by entry, and the
-structural ones (`broadcast_in_dim`, `reshape`, `slice`, `pad`, `concatenate`,
-`transpose`, `dot_general`, `reduce_sum`, `cumsum`, …) by moving entries around.
+`scalarized(f, *args)` traces `f` to a jaxpr once and re-evaluates every equation on
+NumPy object arrays of JAX scalars (calls such as a `jax.jit` inside `f` inlined):
+elementwise primitives entry by entry, and the structural ones (`broadcast_in_dim`,
+`reshape`, `slice`, `pad`, `concatenate`, `transpose`, `dot_general`, `reduce_sum`,
+`cumsum`, …) by moving entries around.
 The operations and their order are those of `f` (sums in a fixed left-to-right
 order), so the results agree with `f` to round-off. A jaxpr with a primitive not
-handled here (loops, `cond`, gathers with traced indices, linear-algebra calls) or
-with more than `max_entries` scalar results in total is evaluated as `f` itself.
+handled here (loops, `cond`, gathers with traced indices, linear-algebra calls,
+calls with a custom derivative) or with more than `max_entries` scalar results in
+total is evaluated as `f` itself.
 """
 
 import math
@@ -28,7 +30,8 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.extend import core as jcore
+
+from . import interpreter
 
 
 _ELEMENTWISE = frozenset(
@@ -51,31 +54,15 @@ _STRUCTURAL = frozenset(
         "transpose", "unstack",
     }
 )  # fmt: skip
-# Not `custom_jvp_call`/`custom_vjp_call`: inlining their primal would drop the
-# custom rule from any derivative taken through the result; such jaxprs fall back.
-_CALLS = frozenset({"pjit", "jit", "closed_call"})
-
-
-def _inner(eqn):
-    """The closed jaxpr a call-like equation evaluates, or None."""
-    for key in ("jaxpr", "call_jaxpr"):
-        inner = eqn.params.get(key)
-        if inner is not None:
-            return inner
-    return None
 
 
 def _cost(jaxpr) -> float:
-    """Scalar results the evaluation would create; `inf` if a primitive is unknown."""
+    """Scalar results the evaluation would create; `inf` if a primitive is unknown.
+    Calls with a custom derivative count as unknown: inlining their primal would
+    drop the custom rule from any derivative taken through the result."""
     total = 0
-    for eqn in jaxpr.eqns:
+    for eqn in interpreter.equations(jaxpr):
         name = eqn.primitive.name
-        if name in _CALLS:
-            inner = _inner(eqn)
-            if not isinstance(inner, jcore.ClosedJaxpr):
-                return math.inf
-            total += _cost(inner.jaxpr)
-            continue
         if name not in _ELEMENTWISE and name not in _STRUCTURAL:
             return math.inf
         if name == "pad" and any(i for _, _, i in eqn.params["padding_config"]):
@@ -158,8 +145,8 @@ def _bind(primitive, args, params):
 
 # Correctly rounded (IEEE) operations folded by NumPy, bit for bit what XLA gives
 # (not max/min: XLA orders -0.0 below +0.0, NumPy returns its first argument):
-# each `primitive.bind` on constants compiles an XLA computation once per process
-# (~30 ms apiece, ~0.3 s of a first sweep's start before this, measured).
+# each `primitive.bind` on constants compiles an XLA computation once per process,
+# which a first sweep would wait for.
 _EXACT = {
     "add": np.add,
     "sub": np.subtract,
@@ -225,20 +212,17 @@ def _mul(a, b):
     return _bind(jax.lax.mul_p, (a, b), {})
 
 
-def _sum(values):
-    values = list(values)
-    total = values[0]
-    for v in values[1:]:
-        total = _add(total, v)
-    return total
-
-
 def _fold(f, values):
+    """`f` applied left to right: `f(f(v0, v1), v2)`..."""
     values = list(values)
     acc = values[0]
     for v in values[1:]:
         acc = f(acc, v)
     return acc
+
+
+def _sum(values):
+    return _fold(_add, values)
 
 
 def _to_end(x, axes):
@@ -249,27 +233,18 @@ def _to_end(x, axes):
     return moved.reshape([x.shape[d] for d in rest] + [k])
 
 
-def _eval_jaxpr(jaxpr, consts, args):
-    env = {}
+def _const(value, aval):
+    """A constant or a literal as an object array (of JAX scalars where traced)."""
+    known = isinstance(value, np.ndarray) or not isinstance(value, jax.core.Tracer)
+    return _objects(np.asarray(value) if known else value)
 
-    def read(v):
-        if isinstance(v, jcore.Literal):
-            return _objects(np.asarray(v.val))
-        return env[v]
 
-    for v, c in zip(jaxpr.constvars, consts):
-        known = isinstance(c, np.ndarray) or not isinstance(c, jax.core.Tracer)
-        env[v] = _objects(np.asarray(c) if known else c)
-    for v, a in zip(jaxpr.invars, args):
-        env[v] = a
-    for eqn in jaxpr.eqns:
-        outs = _apply(eqn, [read(v) for v in eqn.invars])
-        if not eqn.primitive.multiple_results:
-            outs = [outs]
-        for v, out in zip(eqn.outvars, outs):
-            # Indexing an object array down to one entry gives the entry itself.
-            env[v] = out if isinstance(out, np.ndarray) else _filled((), [out])
-    return [read(v) for v in jaxpr.outvars]
+def _rule(eqn, ins):
+    outs = _apply(eqn, ins)
+    if not eqn.primitive.multiple_results:
+        outs = [outs]
+    # Indexing an object array down to one entry gives the entry itself.
+    return [out if isinstance(out, np.ndarray) else _filled((), [out]) for out in outs]
 
 
 def _apply(eqn, ins):  # noqa: C901 - one branch per primitive reads best
@@ -282,9 +257,6 @@ def _apply(eqn, ins):  # noqa: C901 - one branch per primitive reads best
             shape,
             (_bind(eqn.primitive, [x[i] for x in ins], p) for i in np.ndindex(shape)),
         )
-    if name in _CALLS:
-        inner = _inner(eqn)
-        return _eval_jaxpr(inner.jaxpr, inner.consts, ins)
     x = ins[0] if ins else None
     if name == "broadcast_in_dim":
         shape = p["shape"]
@@ -398,7 +370,7 @@ def scalarized(f, *args, max_entries=20_000):
     if _cost(closed.jaxpr) > max_entries:
         return f(*args)
     flat = [_objects(jnp.asarray(a)) for a in jax.tree.leaves(args)]
-    outs = _eval_jaxpr(closed.jaxpr, closed.consts, flat)
+    outs = interpreter.evaluate(closed.jaxpr, closed.consts, flat, _rule, const=_const)
     arrays = []
     for out, aval in zip(outs, closed.out_avals):
         entries = [jnp.asarray(v, aval.dtype) for v in out.reshape(-1)]

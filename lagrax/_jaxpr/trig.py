@@ -1,13 +1,11 @@
 r"""Sine and cosine in float64 that XLA's CPU backend vectorizes.
 
 XLA compiles `jnp.sin` and `jnp.cos` on a CPU to one scalar call of the C library per
-element (`sin`, `cos`, `sincos`: 7.6-9.2 ns per float64 element on one core of this
-project's AMD EPYC, measured), while the arithmetic around them runs 8 lanes per
-instruction. In the sweep kernel the pendulum's three sines per lane-step (the Taylor
-recurrence's order 0, the acceleration at the step's end and at a located event) were
-~24 ns of a ~105 ns lane-step. Written with `jnp` arithmetic, the same functions are
-fused and vectorized: 1.6 ns per element for a sine, 1.9 ns for a sine and a cosine
-of the same argument (measured over 2^20 elements, one core).
+element, while the arithmetic around them runs several lanes per instruction: in the
+sweep kernel the pendulum's three sines per lane-step (the Taylor recurrence's order
+0, the acceleration at the step's end and at a located event) are a large share of the
+step. Written with `jnp` arithmetic, the same functions are fused and vectorized
+(figures in `benchmarks/README.md`).
 
 The algorithm is fdlibm's (Sun Microsystems, 1993; FreeBSD's `k_sin.c`, `k_cos.c`,
 `e_rem_pio2.c`): $x = n\pi/2 + y$ with $n$ the nearest integer to $2x/\pi$ and $y$ a
@@ -28,7 +26,8 @@ a Payne-Hanek reduction there; vectorized, every element would pay for it.)
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.extend import core as jex_core
+
+from . import interpreter
 
 
 # fdlibm's constants (e_rem_pio2.c): pi/2 in three 33-bit parts and the tail of the
@@ -100,8 +99,7 @@ def _kernel_cos(x, y):
 
 
 # Compiled as a call (XLA inlines it: the same program) so that its trace is cached
-# per shape: the default sweep traces ~20 sincos calls, and the first call's tracing
-# took 0.83-0.88 -> 0.68-0.71 s (one core, measured).
+# per shape: the default sweep traces ~20 sincos calls.
 @jax.jit
 def _sincos(x):
     x = jnp.where(jnp.abs(x) <= _RANGE, x, jnp.nan)  # (NaN propagates to both)
@@ -130,68 +128,27 @@ def _sincos_jvp(primals, tangents):
     return (s, c), (c * dx, -s * dx)
 
 
-# Call-like primitives whose inner jaxpr lagrax's jaxpr evaluators inline (here and
-# the Taylor builder of `_taylor.py`): a `jax.jit` inside L, `jax.checkpoint`. Other
-# higher-order primitives (custom derivatives, loops) are bound as they are, with
-# the C library's sine inside.
-CALLS = {
-    "pjit": "jaxpr",
-    "jit": "jaxpr",
-    "closed_call": "call_jaxpr",
-    "core_call": "call_jaxpr",
-    "remat": "jaxpr",
-    "checkpoint": "jaxpr",
-}
-
-
-def _eval(jaxpr, consts, args):
-    env = {}
-
-    def read(v):
-        return v.val if isinstance(v, jex_core.Literal) else env[v]
-
-    for v, c in zip(jaxpr.constvars, consts):
-        env[v] = c
-    for v, a in zip(jaxpr.invars, args):
-        env[v] = a
-    for eqn in jaxpr.eqns:
-        ins = [read(v) for v in eqn.invars]
-        name = eqn.primitive.name
-        if (
-            name in ("sin", "cos")
-            and eqn.invars[0].aval.dtype == jnp.float64
-            and eqn.params.get("accuracy") is None
-        ):
-            outs = [sincos(ins[0])[name == "cos"]]
-        elif name in CALLS and CALLS[name] in eqn.params:
-            sub = eqn.params[CALLS[name]]
-            if isinstance(sub, jex_core.ClosedJaxpr):
-                outs = _eval(
-                    sub.jaxpr, sub.consts, ins[len(ins) - len(sub.jaxpr.invars) :]
-                )
-            else:
-                outs = _eval(sub, (), ins[len(ins) - len(sub.invars) :])
-        else:
-            with eqn.ctx.manager:
-                outs = eqn.primitive.bind(
-                    *ins, **eqn.primitive.get_bind_params(eqn.params)
-                )
-            if not eqn.primitive.multiple_results:
-                outs = [outs]
-        for v, o in zip(eqn.outvars, outs):
-            env[v] = o
-    return [read(v) for v in jaxpr.outvars]
+def _rule(eqn, ins):
+    if (
+        eqn.primitive.name in ("sin", "cos")
+        and eqn.invars[0].aval.dtype == jnp.float64
+        and eqn.params.get("accuracy") is None
+    ):
+        return [sincos(ins[0])[eqn.primitive.name == "cos"]]
+    return interpreter.bind(eqn, ins)
 
 
 def vectorized_trig(f):
     """`f` with every float64 `sin` and `cos` in its jaxpr (and in the `jit` calls
-    within) replaced by `sincos` above; the same outputs otherwise. Traced at each
-    call: wrap the result in `jax.jit` where it is called often."""
+    within) replaced by `sincos` above; the same outputs otherwise. Calls with a
+    custom derivative are bound as they are (their derivative rule is kept, with the
+    C library's sine inside). Traced at each call: wrap the result in `jax.jit`
+    where it is called often."""
 
     def g(*args):
         closed, shape = jax.make_jaxpr(f, return_shape=True)(*args)
         flat = jax.tree.leaves(args)
-        outs = _eval(closed.jaxpr, closed.consts, flat)
+        outs = interpreter.evaluate(closed.jaxpr, closed.consts, flat, _rule)
         return jax.tree.unflatten(jax.tree.structure(shape), outs)
 
     return g

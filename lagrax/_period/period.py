@@ -12,18 +12,20 @@ time-reversed outgoing leg, so $T = 2\,t(q_0 \to q_1)$: half the work. Nothing h
 assumes a centre of oscillation; the turning points are found wherever they are.
 
 `period` is the one-lane entry point: it checks its arguments, runs one lane of the
-batch kernel (`kernel.py`: the loop, its step, event location, raw statuses;
-`sweep.py`: legs, error estimate, statuses) and turns a failed status into an
-error. Numerical choices (each one a measured trap):
+period kernel (`loop.py`: the loop over lanes; `methods.py`: legs; `estimate.py`:
+the error estimate; `finish.py`: statuses) and turns a failed status into an error.
+Numerical choices (each one a measured trap):
 
 - Each lane is integrated in its own units, $x = (q - q_0)/|q_0|$ and $s = t/\tau$
   with $\tau = \sqrt{|q_0| / |\ddot q(q_0)|}$, so that `rtol`/`atol` mean the same
   thing at an amplitude of $10^{-3}$ as at $3$.
 - An event (turning point, point of maximum speed, a given position) is detected by a
   sign change over an accepted step, with a direction, so that the exact zero at
-  release does not fire it, and located by re-stepping from the last accepted state
-  with the step length as the unknown (Newton, or a secant for $\ddot q = 0$): each
-  trial is a full step of the solver, nothing is interpolated.
+  release does not fire it. A Taylor step locates it inside the step from its
+  polynomials (the solution over the whole step); a Runge–Kutta step by trial steps
+  from the last accepted state with the step length as the unknown (Newton, or a
+  secant for $\ddot q = 0$): each trial is a full step of the solver, nothing is
+  interpolated.
 - A lane whose energy $h = \dot q\,\partial L/\partial\dot q - L$ at the end of a
   leg differs from its value at release by more than `energy_tol` (relative to the
   work scale $|M\ddot q|\,|q_0|$ at release) is a failure, whatever the solver said:
@@ -32,20 +34,10 @@ error. Numerical choices (each one a measured trap):
 
 import diffrax as dfx
 import equinox as eqx
+import jax
 from jaxtyping import Array
 
-from .._checks import (
-    as_real_array,
-    check_choice,
-    check_finite,
-    check_instance,
-    check_one_dof,
-    describe,
-    is_concrete,
-    positive_int,
-    positive_scalar,
-    tolerances,
-)
+from .._checks import as_real_array, check_finite, is_concrete
 from .._custom_types import Lagrangian, RealScalarLike
 from .._results import (
     NONFINITE_INPUT,
@@ -56,10 +48,12 @@ from .._results import (
     status_result,
     SUCCESS,
 )
-from .._taylor.coefficients import Taylor
-
-
-_METHODS = ("matched", "half", "full", "quarter")
+from .._taylor.solver import Taylor
+from .autodiff import periods_diff
+from .methods import Method
+from .options import check_options
+from .reuse import canonical_inputs
+from .solver import stepper_of
 
 
 class _Lane(eqx.Module):
@@ -71,42 +65,6 @@ class _NoPeriodError(ValueError, RuntimeError):
     # No period at this release point: a bad `q0` (ValueError), and a failed status
     # like the others `period` raises as RuntimeError.
     pass
-
-
-def _check_options(L, dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method):
-    """The checks `period` and `sweep_periods` share, run once per call."""
-    check_one_dof(L, dtype)
-    from .kernel import stepper
-
-    check_instance(
-        solver,
-        "solver",
-        (dfx.AbstractERK, Taylor),
-        "an adaptive explicit Runge–Kutta diffrax solver (the period kernel steps "
-        "through its Butcher tableau), e.g. diffrax.Dopri8() or diffrax.Tsit5(), or "
-        "lagrax.Taylor()",
-    )
-
-    if stepper(solver) is None:
-        raise TypeError(
-            "`solver` must be an adaptive explicit Runge–Kutta diffrax solver (with an "
-            f"embedded error estimate), e.g. diffrax.Dopri8(); got {describe(solver)}."
-        )
-    rtol, atol = tolerances(rtol, atol, dtype, stacklevel=3)
-    t_max = positive_scalar(t_max, "t_max", dtype, optional=True)
-    energy_tol = positive_scalar(energy_tol, "energy_tol", dtype, optional=True)
-    max_steps = positive_int(max_steps, "max_steps")
-    return (
-        rtol,
-        atol,
-        t_max,
-        energy_tol,
-        max_steps,
-        check_choice(method, "method", _METHODS),
-    )
-
-
-# ---------------------------------------------------------------------------- period
 
 
 def period(
@@ -178,8 +136,8 @@ def period(
         `Tsit5()`, `Dopri5()`, … work too), or `lagrax.Taylor()` (also
         `Taylor(fallback=Dopri8())`, the default of `sweep_periods`). For one lane
         the run time is a few ms either way and the first call's compile decides:
-        on the pendulum, "matched", one core, `Dopri8()` 2.8 s and 5.4 s for the
-        first `jax.grad`, `Taylor()` 4.2 s and 24 s (measured).
+        `Dopri8()` compiles faster than `Taylor()`, and its first `jax.grad` several
+        times faster.
     - `rtol`, `atol`: tolerances, in the lane's own units (lengths in $|q_0|$, times
         in $\sqrt{|q_0|/|\ddot q(q_0)|}$): small amplitudes keep relative accuracy.
     - `max_steps`: the most steps for one swing.
@@ -214,7 +172,7 @@ def period(
 
     ```python
     L = lagrax.systems.pendulum.lagrangian()
-    lagrax.period(L, 1.0)  # 6.6986..., = pendulum_period(1.0)
+    lagrax.period(L, 1.0)  # 6.69997566..., = lagrax.systems.pendulum.period(1.0)
     ```
     """
     q0 = as_real_array(q0, "q0")
@@ -226,23 +184,12 @@ def period(
     q0 = q0.reshape(())
     if throw:
         check_finite(q0, "q0")
-    rtol, atol, t_max, energy_tol, max_steps, method = _check_options(
+    opts = check_options(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    from .kernel import resolve_solver, stepper
-    from .sweep import one_lane
-
-    T, status, estimate = one_lane(
-        L,
-        q0,
-        stepper(resolve_solver(solver, L, q0.dtype)),
-        method,
-        max_steps,
-        rtol,
-        atol,
-        t_max,
-        energy_tol,
-        error_estimate,
+    L_c, consts, solver = canonical_inputs(L, solver, q0.dtype)
+    T, status, estimate = _one_lane(
+        L_c, consts, q0, stepper_of(solver), opts, error_estimate
     )
     out = _Lane(T, status)
     if throw:
@@ -264,4 +211,12 @@ def period(
     return (out.period, estimate) if error_estimate else out.period
 
 
-# ---------------------------------------------------------------------------- sweep
+def _one_lane(L_c, consts, q0, stepper, opts, estimate):
+    """`period` on the kernel: one release point (a scalar), one lane, the default
+    device, for the canonical `L_c` and its constants. Returns `(T, status,
+    error_estimate)` as scalars."""
+    cfg = Method(stepper, opts.method, 1, opts.max_steps, bool(estimate))
+    device = (jax.devices()[0],)
+    args = (consts, opts.rtol, opts.atol, opts.t_max, opts.energy_tol)
+    out = periods_diff(L_c, cfg, device, q0[None], *args)
+    return out.periods[0], out.status[0], out.estimate[0]

@@ -23,22 +23,13 @@ import math
 import jax
 import jax.extend
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 
-from .._jaxpr import scalarize as _scalarize
+from .._jaxpr import interpreter, scalarize as _scalarize
 from .._jaxpr.fusion import fusion_off
 from . import solve as _solve
-from .coefficients import (
-    _bind,
-    _initial,
-    _Order0,
-    _order_k,
-    _Program,
-    _RULES,
-    _Store,
-    _Unrolled,
-)
+from .program import _initial, _Order0, _Program, _Store, _Unrolled
+from .recurrences import _bind, _order_k, _RULES
 
 
 _RULES["solve"] = _solve.solve_rule
@@ -131,16 +122,16 @@ def _marked(eqn):
 
 
 def _cost(jaxpr):
-    """`scalarize._cost`, with the marked solve counted as its entries."""
+    """`scalarize._cost` with the marked solve counted as its entries, and the
+    custom-derivative calls inlined (the program is not differentiated through
+    their rules: its derivative is that of its own primitives)."""
     total = 0
     for eqn in jaxpr.eqns:
+        sub = interpreter.body(eqn, custom=True)
         if _marked(eqn):
             total += sum(math.prod(v.aval.shape) for v in eqn.invars)
-        elif eqn.primitive.name in _scalarize._CALLS:
-            inner = _scalarize._inner(eqn)
-            if not isinstance(inner, jax.extend.core.ClosedJaxpr):
-                return math.inf
-            total += _cost(inner.jaxpr)
+        elif sub is not None:
+            total += _cost(sub[0])
         else:
             name = eqn.primitive.name
             if name not in _scalarize._ELEMENTWISE | _scalarize._STRUCTURAL:
@@ -152,40 +143,37 @@ def _cost(jaxpr):
 
 
 def _eval_entries(jaxpr, consts, args):
-    """`scalarize._eval_jaxpr` (the jaxpr on object arrays of scalars), with each
+    """The jaxpr on object arrays of scalars (as `scalarize` evaluates it), each
     marked solve (`solve.definite_solve`) bound as one `definite_solve_p` on its
-    entries."""
+    entries. (Its own walk: `interpreter.evaluate` inlines the marked call.)"""
     env = {}
 
     def read(v):
         if isinstance(v, jax.extend.core.Literal):
-            return _scalarize._objects(np.asarray(v.val))
+            return _scalarize._const(v.val, v.aval)
         return env[v]
 
     for v, c in zip(jaxpr.constvars, consts):
-        known = isinstance(c, np.ndarray) or not isinstance(c, jax.core.Tracer)
-        env[v] = _scalarize._objects(np.asarray(c) if known else c)
+        env[v] = _scalarize._const(c, v.aval)
     for v, a in zip(jaxpr.invars, args):
         env[v] = a
     for eqn in jaxpr.eqns:
         ins = [read(v) for v in eqn.invars]
+        sub = interpreter.body(eqn, custom=True)
         if _marked(eqn):
             M, rhs = ins
             n = rhs.shape[0]
             flat = [jnp.asarray(e) for e in (*M.reshape(-1), *rhs.reshape(-1))]
             res = _solve.definite_solve_p.bind(*flat, n=n)
             outs = [_scalarize._filled((n,), res[:n]), _scalarize._filled((), [res[n]])]
-        elif eqn.primitive.name in _scalarize._CALLS:
-            inner = _scalarize._inner(eqn)
-            outs = _eval_entries(inner.jaxpr, inner.consts, ins)
+        elif sub is not None:
+            sub_jaxpr, sub_consts = sub
+            ins = ins[len(ins) - len(sub_jaxpr.invars) :]
+            outs = _eval_entries(sub_jaxpr, sub_consts, ins)
         else:
-            outs = _scalarize._apply(eqn, ins)
-            if not eqn.primitive.multiple_results:
-                outs = [outs]
+            outs = _scalarize._rule(eqn, ins)
         for v, out in zip(eqn.outvars, outs):
-            env[v] = (
-                out if isinstance(out, np.ndarray) else _scalarize._filled((), [out])
-            )
+            env[v] = out
     return [read(v) for v in jaxpr.outvars]
 
 

@@ -33,7 +33,7 @@ from .._checks import (
 )
 from .._custom_types import GeneralizedForce, Lagrangian
 from .._jaxpr.fusion import one_fusion
-from .._taylor.coefficients import Taylor
+from .._taylor.solver import Taylor
 from .._taylor.system import horner, System
 from .simulate import ELEMENTAL, simulate
 from .term import _LagrangeVectorField

@@ -159,6 +159,10 @@ class GaussLegendre4(AbstractGaussLegendre):
     **Example:**
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
+    q0, qdot0 = jnp.array([1.0]), jnp.array([0.0])
     sol = diffrax.diffeqsolve(lagrax.LagrangianTerm(L), lagrax.GaussLegendre4(),
                               t0=0.0, t1=100.0, dt0=0.1, y0=(q0, qdot0))
     ```
@@ -184,6 +188,10 @@ class GaussLegendre6(AbstractGaussLegendre):
     **Example:**
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
+    q0, qdot0 = jnp.array([1.0]), jnp.array([0.0])
     sol = diffrax.diffeqsolve(lagrax.LagrangianTerm(L), lagrax.GaussLegendre6(),
                               t0=0.0, t1=100.0, dt0=0.2, y0=(q0, qdot0))
     ```

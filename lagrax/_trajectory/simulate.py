@@ -21,7 +21,7 @@ from .._checks import (
 )
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
 from .._eom.mechanics import _accelerations_jit
-from .._taylor.coefficients import Taylor
+from .._taylor.solver import Taylor
 from .term import _LagrangeVectorField, LagrangianTerm
 
 
@@ -84,6 +84,9 @@ def vector_field(
     **Example:**
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
     term = diffrax.ODETerm(lagrax.vector_field(L))
     ```
     """

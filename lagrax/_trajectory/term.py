@@ -37,8 +37,12 @@ class LagrangianTerm(dfx.ODETerm):
     **Example:**
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
+    q0, qdot0 = jnp.array([1.0]), jnp.array([0.0])
     term = lagrax.LagrangianTerm(L)
-    sol = diffrax.diffeqsolve(term, lagrax.VariationalMidpoint(), t0, t1, dt0,
+    sol = diffrax.diffeqsolve(term, lagrax.VariationalMidpoint(), 0.0, 10.0, 0.01,
                               (q0, qdot0))
     ```
     """

@@ -217,8 +217,12 @@ class VariationalMidpoint(AbstractVariationalSolver):
     **Example:**
 
     ```python
+    import diffrax
+
+    L = lagrax.systems.pendulum.lagrangian()
+    q0, qdot0 = jnp.array([1.0]), jnp.array([0.0])
     sol = diffrax.diffeqsolve(lagrax.LagrangianTerm(L), lagrax.VariationalMidpoint(),
-                              t0=0.0, t1=100.0, dt0=0.01, y0=(q0, qdot0))
+                              t0=0.0, t1=10.0, dt0=0.01, y0=(q0, qdot0))
     ```
     """
 
@@ -265,8 +269,8 @@ class VariationalMidpoint(AbstractVariationalSolver):
         # p1 = p0 + (p1 - p0), with p0 = pm solved for and p1 - p0 = pp - pm =
         # h (∂L/∂q + Q) at the midpoint: a momentum whose coordinate L does not
         # depend on (and no force acts on) is then carried over bit for bit, as in
-        # the Gauss–Legendre solvers, instead of inheriting the Newton residual
-        # (measured: a spherical pendulum's p_φ drifted 3.8e-13 over 1e5 periods).
+        # the Gauss–Legendre solvers, instead of inheriting the Newton residual,
+        # which would random-walk over a long run.
         p1 = p0 + (pp - pm)
         result = _promote(sol, sol.value, p1)
         y1 = (q1, qdot1)

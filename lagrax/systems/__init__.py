@@ -10,7 +10,11 @@ Every module here has the same shape:
 - `period(amplitude, **params)` where the period is known in closed form (`pendulum`,
     `cycloid`);
 - `force(**params)` where the system has a non-conservative force
-    (`damped_pendulum`): then `acceleration` solves Lagrange's equations with it.
+    (`damped_pendulum`): then `acceleration` solves Lagrange's equations with it;
+- `small_amplitude_period(**params)` where the limit of the period at small
+    amplitudes is known in closed form;
+- `SWEEP`, a `SweepSpec`, where `lagrax sweep NAME` needs more than the release
+    point $q_0$ as the amplitude (its symbol, default range, method, coordinate).
 
 `parameters(module)` lists a system's parameters and their defaults. Older names are
 kept as aliases: `pendulum.pendulum_period`, `cycloid.cycloid_period` (with their
@@ -18,7 +22,7 @@ parameters also positional), and the older `acceleration` calls with fewer argum
 (e.g. `pendulum.acceleration(theta, r=..., g=...)`).
 """
 
-import inspect
+import inspect as _inspect
 
 from . import (
     asymmetric_well as asymmetric_well,
@@ -33,6 +37,7 @@ from . import (
     sphere as sphere,
     spherical_pendulum as spherical_pendulum,
 )
+from ._sweep_spec import SweepSpec as SweepSpec
 from .pendulum import pendulum_period as pendulum_period
 
 
@@ -75,5 +80,5 @@ def parameters(system) -> dict:
     return {
         name: p.default
         for f in functions
-        for name, p in inspect.signature(f).parameters.items()
+        for name, p in _inspect.signature(f).parameters.items()
     }

@@ -15,6 +15,8 @@ $T_0 = 2\pi\sqrt{m/k}$ (Landau & Lifshitz, Mechanics §28). The test oracle for
 
 import jax.numpy as jnp
 
+from ._sweep_spec import SweepSpec
+
 
 def lagrangian(*, m=1.0, k=1.0, a=1.0):
     r"""$L = \frac12 m\dot x^2 - \frac12 k x^2 - \frac13 a x^3$, with $q = (x,)$."""
@@ -57,3 +59,14 @@ def period_expansion(x0, *, m=1.0, k=1.0, a=1.0):
     the release point $x_0$ (relative error $O(x_0^3)$)."""
     x0 = jnp.asarray(x0)
     return small_amplitude_period(m=m, k=k) * (1 + 5 * a**2 * x0**2 / (12 * k**2))
+
+
+def _sweep_range(*, k=1.0, a=1.0):
+    # Release points up to 0.98 of x0 = k/(2a), where the far turning point reaches
+    # the barrier's height; no default range for a well without a barrier.
+    if k > 0 and a > 0:
+        return 1e-3 * k / a, 0.49 * k / a
+    return None
+
+
+SWEEP = SweepSpec("asymmetric well", "x₀", amplitudes=_sweep_range)

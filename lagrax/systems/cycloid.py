@@ -12,9 +12,13 @@ $\ddot u = -(g/4R)u$, regular everywhere: the period is $4\pi\sqrt{R/g}$ for eve
 amplitude, the cusp included.
 """
 
+import math
+
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import positive_array
+from ._sweep_spec import SweepSpec
 
 
 def lagrangian(*, m=1.0, R=1.0, g=1.0):
@@ -91,3 +95,18 @@ def theta_from_u(u):
 def position(theta, *, R=1.0):
     r"""The bob's position $(x, z) = (R(\theta - \sin\theta), R(1 - \cos\theta))$."""
     return jnp.stack([R * (theta - jnp.sin(theta)), 2 * R * jnp.sin(theta / 2) ** 2])
+
+
+# Swept in u = cos(θ/2) = sin(a/2), regular at the cusp where the θ form's mass
+# vanishes; the amplitude a = π − θ₀ is the angle the generating circle has rolled
+# from the bottom (a = π: release at the cusp).
+SWEEP = SweepSpec(
+    "cycloidal pendulum",
+    "a = π − θ₀ (rad)",
+    amplitudes=(1e-3, math.pi),
+    bounds=(0.0, math.pi),
+    method="quarter",
+    lagrangian=lagrangian_u,
+    release_point=lambda a: np.sin(np.asarray(a) / 2),
+    default=True,
+)

@@ -7,10 +7,25 @@ Released from rest at amplitude $\theta_0$ its period is
 $T = 2\pi\sqrt{r/g}\,/\,\mathrm{AGM}(1, \cos(\theta_0/2))$.
 """
 
+import math
+
 import jax
 import jax.numpy as jnp
 
 from .._checks import as_real_promoting_ints, positive_array
+from ._sweep_spec import SweepSpec
+
+
+# "quarter": the well is mirror-symmetric, and stopping at the bottom keeps the
+# releases just below the hump well conditioned.
+SWEEP = SweepSpec(
+    "simple pendulum",
+    "θ₀ (rad)",
+    amplitudes=(1e-3, math.pi - 1e-3),
+    bounds=(0.0, math.pi),
+    method="quarter",
+    default=True,
+)
 
 
 def lagrangian(*, m=1.0, r=1.0, g=1.0):

@@ -1,25 +1,5 @@
-r"""Taylor coefficients of $x' = v$, $v' = a(s, x, v)$ by recurrence from a jaxpr.
-
-A Taylor integrator (heyoka's method) advances the state by the polynomial
-$x(s + h) = \sum_{k=0}^{K} x_k h^k$ whose coefficients come from the differential
-equation itself: with $a(s + h) = \sum_k a_k h^k$,
-
-$$x_{k+1} = \frac{v_k}{k + 1}, \qquad v_{k+1} = \frac{a_k}{k + 1},$$
-
-and $a_k$ depends only on $x_0..x_k$, $v_0..v_k$. Each primitive of the acceleration's
-jaxpr has a recurrence for its $k$-th normalized coefficient from the lower ones
-(products are Cauchy convolutions; $\sin$ and $\cos$ come as a pair,
-$s_k = \frac1k\sum_{j=1}^k j u_j c_{k-j}$, $c_k = -\frac1k\sum_{j=1}^k j u_j s_{k-j}$),
-so all $K$ orders cost $O(K^2)$ multiply-adds per nonlinear node and one
-transcendental call per node, for order 0. `jax.experimental.jet` called $K$ times
-would redo every lower order each time: $O(K^3)$.
-
-Why this is worth doing: on CPU, XLA's float64 `sin` is a scalar libm call (~8 ns per
-element) while a multiply-add vectorizes (~0.2 ns), so an order-20 Taylor step costs
-about as much as a few sines, against 13 sines for one step of an 8th-order
-Runge–Kutta method.
-
-Design, measured (`benchmarks/taylor_coefficients.py`):
+r"""The coefficient program: a jaxpr flattened once, evaluated at order 0, then
+order by order with the recurrences of `recurrences.py`.
 
 - The jaxpr is traced once at scalar inputs, nested calls (`jit`, `custom_jvp_call`,
     ...) are inlined, duplicate equations merged (an autodiff jaxpr computes `sin q`
@@ -29,147 +9,50 @@ Design, measured (`benchmarks/taylor_coefficients.py`):
     evaluated once, at order 0, and multiplies series in $O(K)$. Outputs of
     zero-derivative primitives (`sign`, `floor`, comparisons, `is_finite`) and the
     branch of `select_n`, `max`, `abs` are decided on the order-0 coefficient.
-- Orders 1..K-1 run in one `lax.fori_loop` over fixed-shape `(K + 1, W)` coefficient
-    arrays; each Cauchy sum is a full-length product with a reversed, shifted copy
-    (`_Store`), so half its multiply-adds hit zeros. Unrolling the orders in Python
-    instead (exactly triangular sums, one `(W,)` array per coefficient) compiled in
-    5-8 s at order 20 against ~0.6 s, and did not run faster (both measured on a
-    loaded 2-core machine).
+- Orders 1..K-1 come one of two ways. With `unrolled=True` (the period kernel's
+    default), as one straight-line program (`_Unrolled`: exactly triangular sums, one
+    `(W,)` array per coefficient), which XLA fuses with the polynomials' evaluation
+    into a few loops over the lanes; it compiles longer, so a program of more than
+    `_UNROLL_BUDGET` equations takes the other way. Otherwise, in one `lax.fori_loop`
+    over fixed-shape `(K + 1, W)` coefficient arrays (`_Store`): each Cauchy sum is a
+    full-length product with a reversed, shifted copy, so half its multiply-adds hit
+    zeros, but the program's size does not grow with $K$.
+
+`benchmarks/taylor_coefficients.py` measures both.
 """
 
 from collections.abc import Callable
 
-import diffrax as dfx
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.extend import core as jex_core
 
-from .._jaxpr import trig as _trig
+from .._jaxpr import interpreter, trig as _trig
 from .._jaxpr.fusion import fusion_off
-from .diffrax_solver import AbstractTaylorSolver
-
-
-__all__ = ["Taylor", "taylor_coefficients"]
-
-# Primitives whose output is locally constant (zero derivative): decided at order 0.
-_PIECEWISE_CONSTANT = frozenset(
-    {
-        "sign",
-        "floor",
-        "ceil",
-        "round",
-        "is_finite",
-        "eq",
-        "ne",
-        "lt",
-        "le",
-        "gt",
-        "ge",
-        "and",
-        "or",
-        "not",
-        "xor",
-        "iota",
-        "argmax",
-        "argmin",
-        "nextafter",
-    }
+from .recurrences import (
+    _add,
+    _BILINEAR,
+    _bind,
+    _ELEMENTWISE,
+    _LINEAR,
+    _NONLINEAR,
+    _order_k,
+    _PIECEWISE_CONSTANT,
 )
 
-# Primitives linear in their floating-point operands (integer/bool operands, e.g.
-# indices and predicates, are fixed at order 0): the k-th coefficient of the output is
-# the primitive applied to the k-th coefficients, a constant float operand counting as
-# zero. `stop_gradient` is the identity on values: the Taylor series of the trajectory
-# does not care how a function would be differentiated.
-_LINEAR = frozenset(
-    {
-        "add",
-        "add_any",
-        "sub",
-        "neg",
-        "convert_element_type",
-        "broadcast_in_dim",
-        "reshape",
-        "squeeze",
-        "expand_dims",
-        "transpose",
-        "slice",
-        "concatenate",
-        "stack",
-        "unstack",
-        "split",
-        "pad",
-        "rev",
-        "reduce_sum",
-        "cumsum",
-        "select_n",
-        "dynamic_slice",
-        "dynamic_update_slice",
-        "gather",
-        "copy",
-        "copy_p",
-        "real",
-        "stop_gradient",
-        "reduce_precision",
-        "optimization_barrier",
-    }
-)
 
-# Primitives bilinear in their two operands: linear if one is constant.
-_BILINEAR = frozenset({"mul", "dot_general"})
-
-# Elementwise primitives whose operands may be rank-0 beside arrays.
-_ELEMENTWISE = frozenset(
-    {"add", "add_any", "sub", "mul", "div", "max", "min", "pow", "rem", "clamp"}
-)
-
-# Call-like primitives whose (primal) body is inlined: `_trig.CALLS`, and here the
-# custom derivatives too (the recurrences need the primal only; `_trig` must keep
-# them, as the kernel's derivative goes through its calls).
-_CALLS = {
-    **_trig.CALLS,
-    "custom_jvp_call": "call_jaxpr",
-    "custom_vjp_call": "call_jaxpr",
-    "custom_vjp_call_jaxpr": "fun_jaxpr",
-}
-
-# Elementwise nonlinear primitives with a recurrence below (plus mul/dot_general/div).
-_NONLINEAR = frozenset(
-    {
-        "sin",
-        "cos",
-        "sinh",
-        "cosh",
-        "tan",
-        "tanh",
-        "exp",
-        "exp2",
-        "expm1",
-        "log",
-        "log1p",
-        "sqrt",
-        "rsqrt",
-        "cbrt",
-        "square",
-        "integer_pow",
-        "pow",
-        "div",
-        "atan",
-        "logistic",
-        "abs",
-        "max",
-        "min",
-        "clamp",
-        "rem",
-    }
-)
+__all__ = ["taylor_coefficients"]
 
 
 def _supported():
-    return sorted(_PIECEWISE_CONSTANT | _LINEAR | _BILINEAR | _NONLINEAR | set(_CALLS))
+    return sorted(
+        _PIECEWISE_CONSTANT
+        | _LINEAR
+        | _BILINEAR
+        | _NONLINEAR
+        | set(interpreter.supported_calls(custom=True))
+    )
 
 
 class _Node:
@@ -233,33 +116,15 @@ class _Program:
         return i
 
     def _inline(self, jaxpr, consts, ins):
-        env = {}
-        for var, c in zip(jaxpr.constvars, consts):
-            env[var] = self._const(c, var.aval)
-        for var, i in zip(jaxpr.invars, ins):
-            env[var] = i
-
-        def read(a):
-            if isinstance(a, jex_core.Literal):
-                return self._const(a.val, a.aval)
-            return env[a]
-
-        for eqn in jaxpr.eqns:
-            args = [read(a) for a in eqn.invars]
-            name = eqn.primitive.name
-            if name in _CALLS and _CALLS[name] in eqn.params:
-                sub = eqn.params[_CALLS[name]]
-                if isinstance(sub, jex_core.ClosedJaxpr):
-                    sub_jaxpr, sub_consts = sub.jaxpr, sub.consts
-                else:
-                    sub_jaxpr, sub_consts = sub, ()
-                n_args = len(sub_jaxpr.invars)
-                outs = self._inline(sub_jaxpr, sub_consts, args[len(args) - n_args :])
-            else:
-                outs = self._emit(eqn.primitive, args, eqn.params, eqn.outvars)
-            for var, o in zip(eqn.outvars, outs):
-                env[var] = o
-        return [read(a) for a in jaxpr.outvars]
+        # Custom-derivative calls inlined too: the recurrences need the primal only.
+        return interpreter.evaluate(
+            jaxpr,
+            consts,
+            ins,
+            lambda eqn, args: self._emit(eqn.primitive, args, eqn.params, eqn.outvars),
+            const=self._const,
+            custom=True,
+        )
 
     def _is_series(self, name, args, outvars):
         if not any(a in self.series for a in args):
@@ -386,35 +251,6 @@ def _scalar(aval):
     return jax.core.ShapedArray((), aval.dtype)
 
 
-# --- evaluation --------------------------------------------------------------------
-
-
-def _bind(prim, params, vals, batched):
-    """`prim.bind` with lane-batched operands (axis 0) vmapped."""
-    if not any(batched):
-        out = prim.bind(*vals, **params)
-    else:
-        axes = [0 if b else None for b in batched]
-        out = jax.vmap(lambda *a: prim.bind(*a, **params), in_axes=axes)(*vals)
-    return list(out) if prim.multiple_results else [out]
-
-
-def _add(x, y):
-    if x is None:
-        return y
-    if y is None:
-        return x
-    return x + y
-
-
-def _neg(x):
-    return None if x is None else -x
-
-
-def _times(x, c):
-    return None if x is None else x * c
-
-
 class _Order0:
     """Every variable at order 0: the jaxpr evaluated on the lanes' values."""
 
@@ -486,6 +322,8 @@ class _Store:
     that holds the unknown.
     """
 
+    triangular = False  # Cauchy sums over full-length windows
+
     def __init__(self, zero, K, k, carry, lanes, record):
         self.zero = zero  # order-0 data
         self.K = K
@@ -544,14 +382,13 @@ class _Unrolled(_Store):
     orders computed so far.
 
     All orders of one step then trace into one straight-line program that XLA fuses
-    into a few loops over the lanes, with nothing stored between orders. Measured on
-    the pendulum at order 20, 4096 lanes, one core: ~48 ns per lane for all orders
-    and the polynomial's evaluation when they reach XLA as ONE output (against
-    ~1.3 µs for the `fori_loop` over `(K + 1, W)` arrays); stacking the K + 1
-    coefficients as outputs instead makes XLA recompute the whole program once per
-    output (~300 ns, 36 sines); the period kernel therefore passes the step's
-    outputs through one variadic reduction (`lagrax._jaxpr.fusion.one_fusion`).
+    into a few loops over the lanes, with nothing stored between orders, when it
+    reaches XLA as one output: with the K + 1 coefficients as separate outputs, XLA
+    recomputes the whole program once per output. The period kernel therefore
+    passes the step's outputs through one variadic reduction (`fusion.one_fusion`).
     """
+
+    triangular = True  # exactly triangular sums, `pairs` below
 
     def __init__(self, zero, lanes, coef):
         self.zero = zero
@@ -625,289 +462,6 @@ def _initial(K, value0):
     return F, None
 
 
-# --- recurrences: the k-th coefficient (k >= 1, traced) of each series node ---------
-
-
-def _linear(st, node):
-    if node.kind in _BILINEAR:
-        return _bilinear(st, node)
-    zero, prog = st.zero, st.zero.prog
-    cs = [st.get(i) if i in prog.series else None for i in node.ins]
-    kind = node.kind
-    # Shape-preserving arithmetic directly (no vmap, no additions of zeros).
-    if kind in ("add", "add_any", "sub") and len(cs) == 2:
-        return [_add(cs[0], _neg(cs[1]) if kind == "sub" else cs[1])]
-    if kind == "neg":
-        return [_neg(cs[0])]
-    if all(c is None for i, c in zip(node.ins, cs) if i in prog.series):
-        return [None] * len(node.outs)
-    vals, batched = [], []
-    for i, c in zip(node.ins, cs):
-        aval = prog.avals[i]
-        if i in prog.series:
-            shape = (zero.W,) + tuple(aval.shape)
-            vals.append(jnp.zeros(shape, aval.dtype) if c is None else c)
-            batched.append(True)
-        elif jnp.issubdtype(aval.dtype, jnp.inexact):
-            # A constant float operand has no k-th coefficient.
-            vals.append(jnp.zeros(aval.shape, aval.dtype))
-            batched.append(False)
-        else:  # indices, predicates: fixed at order 0
-            vals.append(zero.val[i])
-            batched.append(zero.bat[i])
-    return _bind(node.prim, node.params, vals, batched)
-
-
-def _bilinear(st, node):
-    u, w = node.ins
-    series = st.zero.prog.series
-    if u in series and w in series:
-        if node.kind == "mul":
-            return [st.conv(u, w)]
-        if isinstance(st, _Unrolled):
-            return [
-                st.pairs(
-                    u,
-                    w,
-                    lambda a, b: _bind(node.prim, node.params, [a, b], [True, True])[0],
-                )
-            ]
-        # sum_j dot(u_j, w_{k-j}): the K + 1 terms as one batched dot_general.
-        Fu, _ = st._arrays(u)
-        Ww = st.window(w)
-        lead = Fu.shape[:2]
-        flat = lambda a: a.reshape((-1,) + a.shape[2:])
-        out = _bind(node.prim, node.params, [flat(Fu), flat(Ww)], [True, True])[0]
-        return [jnp.sum(out.reshape(lead + out.shape[1:]), axis=0)]
-    c = st.get(u if u in series else w)
-    if c is None:
-        return [None]
-    if node.kind == "mul":
-        return [c * st.zero.const(w if u in series else u)]
-    zero = st.zero
-    vals = [c, zero.val[w]] if u in series else [zero.val[u], c]
-    batched = [True, zero.bat[w]] if u in series else [zero.bat[u], True]
-    return _bind(node.prim, node.params, vals, batched)
-
-
-def _weighted(st, node, u):
-    r"""The auxiliary series $j u_j$ (zero at $j = 0$), extended to order k."""
-    ju = st.aux((node.outs[0], "ju"), lambda: jnp.zeros_like(st.zero.lanes(u)))
-    uk = st.get(u)
-    st.put(ju, jnp.zeros_like(st.zero.lanes(u)) if uk is None else uk * st.kf)
-    return ju
-
-
-def _inverse0(st, node, value0):
-    """`1 / value0()` once per node, outside the loop: a division is ~10 multiply-adds,
-    and the reciprocal serves every order."""
-    return st.zero.once((node.outs[0], "inv"), lambda: 1.0 / value0())
-
-
-def _sincos(st, node):
-    r"""$s_k = \frac1k\sum_{j=1}^k j u_j c_{k-j}$, $c_k = \mp\frac1k\sum_{j=1}^k j u_j
-    s_{k-j}$ ($-$ for sin/cos, $+$ for sinh/cosh)."""
-    (u,) = node.ins
-    s, c = node.outs
-    ju = _weighted(st, node, u)
-    sign = -1.0 if node.kind == "sincos" else 1.0
-    inv_k = 1.0 / st.kf
-    return [st.conv(ju, c) * inv_k, st.conv(ju, s) * (sign * inv_k)]
-
-
-def _exp(st, node):
-    r"""$c_k = \frac1k\sum_{j=1}^k j u_j c_{k-j}$; for `expm1` the order-0 term of
-    $e^u = c + 1$ adds $j u_j$ at $j = k$."""
-    (u,) = node.ins
-    ju = _weighted(st, node, u)
-    total = st.conv(ju, node.outs[0])
-    if node.kind == "expm1":
-        total = total + st.get(ju)
-    return [total / st.kf]
-
-
-def _log(st, node):
-    r"""$c_k = \bigl(u_k - \frac1k\sum_{j=1}^{k-1} j c_j u_{k-j}\bigr) / u_0$."""
-    (u,) = node.ins
-    (c,) = node.outs
-    shift = 1.0 if node.kind == "log1p" else 0.0
-    inv = _inverse0(st, node, lambda: st.zero.lanes(u) + shift)
-    jc = st.aux((c, "jc"), lambda: jnp.zeros_like(st.zero.lanes(u)))
-    ck = (st.get(u) - st.conv(jc, u) / st.kf) * inv
-    st.put(jc, ck * st.kf)
-    return [ck]
-
-
-def _sqrt(st, node):
-    r"""$c_k = \bigl(u_k - \sum_{j=1}^{k-1} c_j c_{k-j}\bigr) / (2 c_0)$."""
-    (u,) = node.ins
-    (c,) = node.outs
-    inv = _inverse0(st, node, lambda: 2.0 * st.zero.lanes(c))
-    return [(st.get(u) - st.conv(c, c)) * inv]
-
-
-def _power(st, node, a):
-    r"""$c = u^a$: from $u c' = a u' c$,
-    $c_k = \frac{1}{u_0}\Bigl(\frac{a+1}{k}\sum_{j=1}^k j u_j c_{k-j}
-    - \sum_{j=1}^k u_j c_{k-j}\Bigr)$."""
-    u = node.ins[0]
-    (c,) = node.outs
-    inv = _inverse0(st, node, lambda: st.zero.lanes(u))
-    ju = _weighted(st, node, u)
-    total = st.conv(ju, c) * ((a + 1.0) / st.kf) - st.conv(u, c)
-    return [total * inv]
-
-
-def _pow(st, node):
-    return _power(st, node, st.zero.const(node.ins[1]))
-
-
-def _named_power(a):
-    return lambda st, node: _power(st, node, a)
-
-
-def _div(st, node):
-    r"""$c_k = \bigl(u_k - \sum_{j=1}^k w_j c_{k-j}\bigr) / w_0$."""
-    u, w = node.ins
-    series = st.zero.prog.series
-    uk = st.get(u) if u in series else None
-    if w not in series:
-        inv = _inverse0(st, node, lambda: st.zero.const(w))
-        return [_times(uk, inv)]
-    inv = _inverse0(st, node, lambda: st.zero.lanes(w))
-    return [_add(uk, -st.conv(w, node.outs[0])) * inv]
-
-
-def _tan(st, node):
-    r"""$t' = (1 \pm t^2) u'$: with the auxiliary series $w = 1 \pm t^2$,
-    $t_k = \frac1k\sum_{j=1}^k j u_j w_{k-j}$, then $w_k = \pm\sum_j t_j t_{k-j}$."""
-    (u,) = node.ins
-    (t,) = node.outs
-    sign = 1.0 if node.kind == "tan" else -1.0
-    t0 = lambda: st.zero.lanes(t)
-    w = st.aux((t, "w"), lambda: 1.0 + sign * t0() * t0())
-    ju = _weighted(st, node, u)
-    tk = st.conv(ju, w) / st.kf
-    st.put(t, tk)
-    st.put(w, sign * st.conv(t, t))
-    return [tk]
-
-
-def _logistic(st, node):
-    r"""$\sigma' = (\sigma - \sigma^2) u'$, as `tan` with $w = \sigma - \sigma^2$."""
-    (u,) = node.ins
-    (c,) = node.outs
-    c0 = lambda: st.zero.lanes(c)
-    w = st.aux((c, "w"), lambda: c0() - c0() * c0())
-    ju = _weighted(st, node, u)
-    ck = st.conv(ju, w) / st.kf
-    st.put(c, ck)
-    st.put(w, ck - st.conv(c, c))
-    return [ck]
-
-
-def _atan(st, node):
-    r"""$(1 + u^2) c' = u'$: with $w = 1 + u^2$,
-    $c_k = \bigl(u_k - \frac1k\sum_{j=1}^{k-1} w_j (k-j) c_{k-j}\bigr) / w_0$."""
-    (u,) = node.ins
-    (c,) = node.outs
-    u0 = lambda: st.zero.lanes(u)
-    w = st.aux((c, "w"), lambda: 1.0 + u0() * u0())
-    st.put(w, st.conv(u, u))
-    inv = _inverse0(st, node, lambda: 1.0 + u0() * u0())
-    jc = st.aux((c, "jc"), lambda: jnp.zeros_like(u0()))
-    ck = (st.get(u) - st.conv(w, jc) / st.kf) * inv
-    st.put(jc, ck * st.kf)
-    return [ck]
-
-
-def _mask(st, node, key, fn):
-    """A boolean decided on the order-0 coefficients, computed once per node."""
-    return st.zero.once((node.outs[0], key), fn)
-
-
-def _pick(st, mask, a_id, b_id, negate=False):
-    a, b = st.get(a_id), st.get(b_id)
-    b = _neg(b) if negate else b
-    if a is None and b is None:
-        return None
-    a = jnp.zeros_like(b) if a is None else a
-    b = jnp.zeros_like(a) if b is None else b
-    a, b = jnp.broadcast_arrays(a, b)
-    return jnp.where(mask, a, b)
-
-
-def _maxmin(st, node):
-    u, w = node.ins
-    op = jnp.greater_equal if node.kind == "max" else jnp.less_equal
-    lanes = st.zero.lanes
-    mask = _mask(st, node, "mask", lambda: op(lanes(u), lanes(w)))
-    return [_pick(st, mask, u, w)]
-
-
-def _abs(st, node):
-    (u,) = node.ins
-    mask = _mask(st, node, "mask", lambda: st.zero.lanes(u) >= 0)
-    return [_pick(st, mask, u, u, negate=True)]
-
-
-def _clamp(st, node):
-    lo, x, hi = node.ins
-    lanes = st.zero.lanes
-    below = _mask(st, node, "below", lambda: lanes(x) < lanes(lo))
-    above = _mask(st, node, "above", lambda: lanes(x) > lanes(hi))
-    inner = _pick(st, above, hi, x)
-    outer = st.get(lo)
-    if inner is None and outer is None:
-        return [None]
-    inner = jnp.zeros_like(outer) if inner is None else inner
-    outer = jnp.zeros_like(inner) if outer is None else outer
-    inner, outer = jnp.broadcast_arrays(inner, outer)
-    return [jnp.where(below, outer, inner)]
-
-
-def _rem(st, node):
-    u, w = node.ins
-    if w in st.zero.prog.series:
-        raise NotImplementedError(
-            "Taylor coefficients: `rem` with a divisor that depends on the state."
-        )
-    return [st.get(u)]
-
-
-_RULES = {
-    "sincos": _sincos,
-    "sinhcosh": _sincos,
-    "exp": _exp,
-    "expm1": _exp,
-    "log": _log,
-    "log1p": _log,
-    "sqrt": _sqrt,
-    "rsqrt": _named_power(-0.5),
-    "cbrt": _named_power(1.0 / 3.0),
-    "pow": _pow,
-    "div": _div,
-    "tan": _tan,
-    "tanh": _tan,
-    "logistic": _logistic,
-    "atan": _atan,
-    "max": _maxmin,
-    "min": _maxmin,
-    "abs": _abs,
-    "clamp": _clamp,
-    "rem": _rem,
-}
-
-
-def _order_k(st, prog):
-    """Runs every series node at the store's order k (inputs already put)."""
-    for node in prog.nodes:
-        if node.series:
-            outs = _RULES.get(node.kind, _linear)(st, node)
-            for o, c in zip(node.outs, outs):
-                st.put(o, c)
-
-
 def _coefficients(prog, K, s, x, v, leaves, trig=False):
     """`(xs, vs, as_)` for all lanes: order 0 by plain evaluation, orders 1..K-1 in
     a `fori_loop` whose body runs only the series nodes."""
@@ -974,9 +528,10 @@ def _coefficients(prog, K, s, x, v, leaves, trig=False):
 
 
 # The straight-line program's size beyond which `unrolled=True` falls back to the loop
-# over orders. Measured (1 core): the pendulum's order-20 program has 942 equations
-# and compiles with the kernel in ~4 s; the θ-form cycloid's has 5028 and the kernel
-# had not compiled after 300 s (XLA duplicates it into each consumer fusion).
+# over orders: XLA duplicates the program into each fusion that consumes it, so its
+# compile time grows much faster than its size (the pendulum's order-20 program is
+# under a thousand equations; the θ-form cycloid's, over five thousand, does not
+# compile in reasonable time).
 _UNROLL_BUDGET = 2000
 
 
@@ -1071,9 +626,8 @@ def taylor_coefficients(
         prog = _Program(closed, len(leaves))
         if unrolled:
             # Traced once: counted against the budget, then called as it is (a
-            # `jit` call, which XLA inlines: re-binding its thousands of equations
-            # into the caller's trace took ~0.08 s of the default sweep's first-call
-            # tracing, 0.68-0.71 -> 0.60-0.61 s, one core, measured).
+            # `jit` call, which XLA inlines), sparing the caller's trace a re-bind
+            # of its thousands of equations.
             build = jax.jit(
                 lambda *a: _unrolled_coefficients(
                     prog, K, *a[:3], list(a[3:]), vectorized_trig
@@ -1089,118 +643,3 @@ def taylor_coefficients(
     # the budget) rather than the loop over orders.
     coeffs.unrolled = False
     return coeffs
-
-
-class Taylor(AbstractTaylorSolver):
-    r"""A Taylor integrator (heyoka's method) for `period` and `sweep_periods`.
-
-    Each step expands the trajectory to order $K$ about the current state with the
-    coefficients of `taylor_coefficients` (recurrences from the acceleration's jaxpr,
-    one transcendental call per node per step), takes the step length from the last
-    coefficients (Jorba and Zou's rule, as heyoka.py does, but over the last four
-    orders instead of two: from rest the odd coefficients vanish and two orders can
-    rest on one coefficient passing through zero):
-
-    $$h = e^{-0.7/(K-1)}\,\varepsilon^{1/K} \min_{K-3 \le j \le K}
-    \lVert (x_j, v_j)\rVert_\infty^{-1/j},\qquad
-    \varepsilon = \text{atol} + \text{rtol}\,\lVert (x_0, v_0)\rVert_\infty,$$
-
-    (never longer than `max_step` in the lane's units of time, a fraction of its
-    small-amplitude period, so that no event can be stepped over), and evaluates the
-    polynomials at $h$. Nothing is rejected: the step is chosen before it is taken.
-    Events are located by re-evaluating the step from the same base with Newton or
-    a secant on the step length, as for Runge–Kutta solvers.
-
-    Only for the period kernel (not a diffrax solver). The acceleration's jaxpr must
-    consist of primitives with a recurrence (`taylor_coefficients` lists them). For
-    one that has none, `Taylor()` raises `NotImplementedError` naming the primitive
-    at the first call, and `Taylor(fallback=diffrax.Dopri8())` (the default solver of
-    `sweep_periods`) steps with the fallback instead. The fallback also steps where
-    the coefficients' straight-line program would exceed ~2000 equations (the
-    θ-form cycloid, the rotating hoop): the kernel would then loop over the orders,
-    measured 5-10x slower than Dopri8 per period and slower to compile (one core,
-    4096 amplitudes: cycloid 17k against 83k periods/s, hoop 4k against 40k); a
-    plain `Taylor()` still takes that loop. Which one ran is `SweepResult.solver`.
-    Its forward-mode derivative compiles longer than a Runge–Kutta step's (the
-    recurrence's tangent: `jax.grad` of a 64-amplitude "matched" sweep of the
-    pendulum, first call 10.5 s against 4.4 s with `Dopri8`).
-
-    **Arguments:**
-
-    - `order`: $K$, the degree of the polynomials (default 20: the order heyoka.py
-        picks for float64 at its default tolerance; $K \geq 2$).
-    - `max_step`: the longest step in the lane's units of time, $\sqrt{|q_0| /
-        |\ddot q_0|}$ (default 2, a third of a small oscillation's period).
-    - `fallback`: `None` (default), or an adaptive explicit Runge–Kutta diffrax
-        solver to step with where the acceleration has a primitive without a
-        recurrence or a program too large to unroll.
-
-    **Example:**
-
-    ```python
-    L = lagrax.systems.pendulum.lagrangian()
-    res = lagrax.sweep_periods(L, jnp.linspace(0.01, 3.1, 4096), solver=lagrax.Taylor())
-    ```
-    """
-
-    order: int = eqx.field(static=True, default=20)
-    max_step: float = eqx.field(static=True, default=2.0)
-    fallback: "dfx.AbstractERK | None" = eqx.field(static=True, default=None)
-
-    def __check_init__(self):
-        if not isinstance(self.order, int) or isinstance(self.order, bool):
-            raise TypeError(f"`order` must be an int >= 2; got {self.order!r}.")
-        if self.order < 2:
-            raise ValueError(f"`order` must be at least 2; got {self.order}.")
-        if not (isinstance(self.max_step, (int, float)) and 0 < self.max_step < np.inf):
-            raise ValueError(
-                f"`max_step` must be a positive finite number; got {self.max_step!r}."
-            )
-        if self.fallback is not None and not (
-            isinstance(self.fallback, dfx.AbstractERK)
-            and getattr(type(self.fallback).tableau, "b_error", None) is not None
-        ):
-            raise TypeError(
-                "`fallback` must be None or an adaptive explicit Runge–Kutta diffrax "
-                f"solver, e.g. diffrax.Dopri8(); got {self.fallback!r}."
-            )
-
-    def supports(self, accel: Callable, dtype, *params) -> bool:
-        """Whether `taylor_coefficients` has a recurrence for every primitive of
-        `accel(s, x, v, *params)` (scalars `s, x, v`; `params` shape-dtype specs or
-        arrays without a lane axis): traced once, nothing is evaluated."""
-        lanes = [
-            jax.ShapeDtypeStruct((1, *np.shape(p)), jnp.asarray(p).dtype)
-            if not isinstance(p, jax.ShapeDtypeStruct)
-            else jax.ShapeDtypeStruct((1, *p.shape), p.dtype)
-            for p in params
-        ]
-        one = jax.ShapeDtypeStruct((1,), dtype)
-        coeffs = taylor_coefficients(lambda s, x, v, p: accel(s, x, v, *p), 2, dtype)
-        try:
-            jax.eval_shape(lambda s, x, v, p: coeffs(s, x, v, p), one, one, one, lanes)
-        except NotImplementedError:
-            return False
-        return True
-
-    def unrolls(self, accel: Callable, dtype, *params) -> bool:
-        """Whether the period kernel computes `accel`'s coefficients at this order as
-        one straight-line program (at most `_UNROLL_BUDGET` equations) rather than
-        by the slower loop over orders; arguments as `supports` (which must hold).
-        Traced once, nothing is evaluated."""
-        lanes = [
-            jax.ShapeDtypeStruct((1, *p.shape), p.dtype)
-            if isinstance(p, jax.ShapeDtypeStruct)
-            else jax.ShapeDtypeStruct((1, *np.shape(p)), jnp.asarray(p).dtype)
-            for p in params
-        ]
-        one = jax.ShapeDtypeStruct((1,), dtype)
-        coeffs = taylor_coefficients(
-            lambda s, x, v, p: accel(s, x, v, *p),
-            self.order,
-            dtype,
-            unrolled=True,
-            vectorized_trig=True,
-        )
-        jax.eval_shape(lambda s, x, v, p: coeffs(s, x, v, p), one, one, one, lanes)
-        return coeffs.unrolled

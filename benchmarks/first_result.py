@@ -1,0 +1,385 @@
+"""Time to first result: a fresh process, lagrax beside heyoka.py, one pinned core.
+
+What a user meets before any steady state: the import, the trace, the XLA compile and
+the run of a first call. Every measurement runs in its own fresh process pinned to
+one core (`taskset`), with no persistent JAX compile cache (the variables that would
+enable one are removed from the workers' environment), float64:
+
+- the pendulum period sweep (`sweep_periods`, defaults: "matched", Taylor, the error
+  estimate, rtol = atol = 1e-13) of 10^3 … 10^6 amplitudes 0.01–3.1 rad: import of
+  jax + lagrax, the first call (split by `jax.monitoring` into the lowering to MLIR,
+  XLA's backend compile, and the rest: tracing, Python, the run), the second call
+  (the steady state), and the max relative error against the exact period; beside it
+  heyoka.py: import, building the integrator with its event, and the run (its
+  scalar integrator with a terminal event in a Python loop, the script a user
+  writes, tol = eps). The break-even size is where lagrax's whole script (import +
+  first call) takes as long as heyoka.py's, from the fixed costs and steady rates.
+- a rebuilt Lagrangian: `pendulum.lagrangian(g=2.0)`, a new closure with the same
+  body and a new parameter value, swept after the first one in the same process.
+- the first `jax.grad` of the mean period of a 1000-amplitude sweep (w.r.t. q0).
+- the first `simulate` of a double pendulum (from particle positions, 256 releases
+  from rest, θ1, θ2 ∈ [−1, 1], t = 10, Dopri8 at rtol = atol = 1e-12) under
+  `jax.jit(jax.vmap(...))`, beside heyoka.py's build of the same system (its
+  `lagrangian()`, batch mode, tol 1e-12) and its run.
+- the CLI's default job (`python -m lagrax sweep --quiet`) from an empty cache.
+
+    python benchmarks/first_result.py [--quick] [--core 1]
+
+`--quick`: 10^3 and 4096 amplitudes only, the gradient of 64, no CLI run. Writes
+`benchmarks/results/first_result.json` (or `first_result_quick.json`).
+"""
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+
+
+T_START = time.perf_counter()
+HERE = os.path.dirname(os.path.abspath(__file__))
+RESULTS = os.path.join(HERE, "results")
+# The environment variables through which a persistent JAX compile cache could be
+# enabled, removed from the workers' environment.
+_CACHE_VARS = (
+    "JAX_COMPILATION_CACHE_DIR",
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+    "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES",
+)
+
+
+def _amplitudes(n):
+    import numpy as np
+
+    return np.linspace(0.01, 3.1, n)
+
+
+def _exact(a, g=1.0):
+    """The pendulum's exact period, 2π sqrt(1/g) / AGM(1, cos(θ0/2)), in NumPy (no
+    import of jax in heyoka.py's process)."""
+    import numpy as np
+
+    x, y = np.ones_like(a), np.cos(np.asarray(a) / 2)
+    for _ in range(12):
+        x, y = 0.5 * (x + y), np.sqrt(x * y)
+    return 2 * np.pi / np.sqrt(g) / (0.5 * (x + y))
+
+
+def _max_error(T, exact):
+    import numpy as np
+
+    T = np.asarray(T)
+    ok = np.isfinite(T)
+    err = float(np.max(np.abs(T[ok] / exact[ok] - 1))) if ok.any() else None
+    return err, int((~ok).sum())
+
+
+# ------------------------------------------------------------------------ workers
+
+
+def _clock():
+    """Wall and process CPU time (on a shared machine the CPU time is the steadier
+    figure: a pinned worker also waits for its core)."""
+    return time.perf_counter(), time.process_time()
+
+
+def _since(start, name):
+    """`{name}_s`, `{name}_cpu_s`: the wall and CPU seconds since `start`."""
+    w, c = _clock()
+    return {f"{name}_s": w - start[0], f"{name}_cpu_s": c - start[1]}
+
+
+def _jax_import():
+    """Imports jax and lagrax (timed from the start of the process), float64 on, and
+    a listener summing `jax.monitoring`'s compile-stage durations."""
+    import collections
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import lagrax
+
+    row = _since((T_START, 0.0), "import")
+    stages = collections.defaultdict(float)
+
+    def listen(event, seconds, **kw):
+        stages[event] += seconds
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    return jax, lagrax, row, stages
+
+
+def _timed(jax, fn, name, stages=None):
+    """`fn()` and its times; with `stages`, also the lowering and XLA's backend
+    compile inside it (from `jax.monitoring`)."""
+    if stages is not None:
+        stages.clear()
+    start = _clock()
+    out = jax.block_until_ready(fn())
+    row = _since(start, name)
+    if stages is not None:
+        lower = stages.get("/jax/core/compile/jaxpr_to_mlir_module_duration", 0.0)
+        backend = stages.get("/jax/core/compile/backend_compile_duration", 0.0)
+        row[f"{name}_lower_s"] = lower
+        row[f"{name}_compile_s"] = backend
+        row[f"{name}_other_s"] = row[f"{name}_s"] - lower - backend
+    return out, row
+
+
+def work_sweep(args):
+    jax, lagrax, row, stages = _jax_import()
+    from lagrax.systems import pendulum
+
+    a = _amplitudes(args.n)
+    q0 = jax.numpy.asarray(a)
+    L = pendulum.lagrangian()
+    r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "first", stages)
+    row.update(times)
+    r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "steady")
+    row.update(times)
+    err, failed = _max_error(r.periods, _exact(a))
+    row.update(n=args.n, max_rel_error=err, failed=failed)
+    if args.rebuilt:
+        L2 = pendulum.lagrangian(g=2.0)
+        r2, times = _timed(jax, lambda: lagrax.sweep_periods(L2, q0), "rebuilt", stages)
+        err2, failed2 = _max_error(r2.periods, _exact(a, g=2.0))
+        row.update(times, rebuilt_max_rel_error=err2, rebuilt_failed=failed2)
+    return row
+
+
+def work_grad(args):
+    jax, lagrax, row, stages = _jax_import()
+    from lagrax.systems import pendulum
+
+    q0 = jax.numpy.asarray(_amplitudes(args.n))
+    L = pendulum.lagrangian()
+    mean_period = lambda q: lagrax.sweep_periods(L, q).periods.mean()
+    g, times = _timed(jax, lambda: jax.grad(mean_period)(q0), "first", stages)
+    row.update(times)
+    if args.repeat:
+        g, times = _timed(jax, lambda: jax.grad(mean_period)(q0), "second", stages)
+        row.update(times)
+    # dT/dq0 of the mean, against the derivative of the exact period.
+    exact = jax.grad(lambda q: pendulum.period(q).mean())(q0)
+    rel = float(jax.numpy.max(jax.numpy.abs(g / exact - 1)))
+    row.update(n=args.n, max_rel_error=rel)
+    return row
+
+
+def _releases(n):
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    return rng.uniform(-1.0, 1.0, (n, 2))
+
+
+def work_simulate(args):
+    jax, lagrax, row, stages = _jax_import()
+    import diffrax as dfx
+    import jax.numpy as jnp
+
+    from lagrax.systems import double_pendulum
+
+    L = double_pendulum.lagrangian()
+
+    def one(q0):
+        sol = lagrax.simulate(
+            L,
+            q0,
+            jnp.zeros(2),
+            0.0,
+            10.0,
+            solver=dfx.Dopri8(),
+            rtol=1e-12,
+            atol=1e-12,
+            saveat=dfx.SaveAt(t1=True),
+            throw=False,
+        )
+        return sol.ys[0][-1]
+
+    q0 = jnp.asarray(_releases(args.n))
+    f = jax.jit(jax.vmap(one))
+    out, times = _timed(jax, lambda: f(q0), "first", stages)
+    row.update(times)
+    out, times = _timed(jax, lambda: f(q0), "steady")
+    row.update(times, n=args.n)
+    return row
+
+
+def work_heyoka(args):
+    import heyoka as hy
+    import numpy as np
+
+    row = _since((T_START, 0.0), "import")
+    if args.system == "pendulum":
+        a = _amplitudes(args.n)
+        start = _clock()
+        x, v = hy.make_vars("x", "v")
+        system = hy.lagrangian(0.5 * v**2 + hy.cos(x), [x], [v])
+        ev = hy.t_event(x, direction=hy.event_direction.negative)
+        ta = hy.taylor_adaptive(system, [1.0, 0.0], t_events=[ev])
+        row.update(_since(start, "build"))
+        start = _clock()
+        T = np.empty_like(a)
+        for i, a0 in enumerate(a):
+            ta.time = 0.0
+            ta.state[:] = (a0, 0.0)
+            ta.propagate_until(1e3)
+            T[i] = 4 * ta.time
+        row.update(_since(start, "run"))
+        err, failed = _max_error(T, _exact(a))
+        row.update(n=args.n, max_rel_error=err, failed=failed)
+        return row
+    # The double pendulum from particle positions (unit masses and rods, g = 1).
+    start = _clock()
+    x1, x2, v1, v2 = hy.make_vars("x1", "x2", "v1", "v2")
+    vx1, vy1 = hy.cos(x1) * v1, hy.sin(x1) * v1
+    vx2, vy2 = vx1 + hy.cos(x2) * v2, vy1 + hy.sin(x2) * v2
+    y1 = -hy.cos(x1)
+    y2 = y1 - hy.cos(x2)
+    Lh = 0.5 * (vx1**2 + vy1**2) + 0.5 * (vx2**2 + vy2**2) - (y1 + y2)
+    system = hy.lagrangian(Lh, [x1, x2], [v1, v2])
+    B = hy.recommended_simd_size()
+    ta = hy.taylor_adaptive_batch(system, np.zeros((4, B)), tol=1e-12)
+    row.update(_since(start, "build"))
+    q0 = _releases(args.n)
+    start = _clock()
+    for i in range(0, args.n, B):
+        k = min(B, args.n - i)
+        ta.set_time(0.0)
+        ta.state[:2, :] = np.resize(q0[i : i + k].T, (2, B))
+        ta.state[2:, :] = 0.0
+        ta.propagate_until(10.0)
+    row.update(_since(start, "run"), n=args.n, simd=B)
+    return row
+
+
+WORKERS = dict(
+    sweep=work_sweep,
+    grad=work_grad,
+    simulate=work_simulate,
+    heyoka=work_heyoka,
+)
+
+
+# ------------------------------------------------------------------------ driver
+
+
+def _env():
+    env = {k: v for k, v in os.environ.items() if k not in _CACHE_VARS}
+    repo = os.path.dirname(HERE)
+    env["PYTHONPATH"] = repo + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def spawn(core, kind, **kw):
+    cmd = ["taskset", "-c", str(core), sys.executable, __file__, "--worker", kind]
+    for k, v in kw.items():
+        if v is True:
+            cmd += [f"--{k}"]
+        elif v is not False:
+            cmd += [f"--{k}", str(v)]
+    t = time.perf_counter()
+    out = subprocess.run(cmd, capture_output=True, text=True, env=_env())
+    wall = time.perf_counter() - t
+    if out.returncode != 0:
+        print(out.stderr[-3000:], file=sys.stderr)
+        return None
+    row = json.loads(out.stdout.strip().splitlines()[-1])
+    row["process_s"] = wall
+    return row
+
+
+def cli_default_job(core):
+    """`python -m lagrax sweep --quiet` with an empty cache directory, pinned."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(_env(), XDG_CACHE_HOME=cache)
+        cmd = ["taskset", "-c", str(core), sys.executable, "-m", "lagrax", "sweep"]
+        t = time.perf_counter()
+        out = subprocess.run(cmd + ["--quiet"], capture_output=True, text=True, env=env)
+        wall = time.perf_counter() - t
+    if out.returncode != 0:
+        print(out.stderr[-3000:], file=sys.stderr)
+        return None
+    return dict(process_s=wall)
+
+
+def break_even(lx, hy, cpu=""):
+    """The sweep size at which lagrax's whole script (import + first call) takes as
+    long as heyoka.py's (import + build + run), from the fixed costs and steady
+    per-amplitude times of the largest size measured (`cpu="_cpu"`: from the CPU
+    times instead of the wall times)."""
+    per_l = lx[f"steady{cpu}_s"] / lx["n"]
+    per_h = hy[f"run{cpu}_s"] / hy["n"]
+    fixed_l = lx[f"import{cpu}_s"] + lx[f"first{cpu}_s"] - lx[f"steady{cpu}_s"]
+    fixed_h = hy[f"import{cpu}_s"] + hy[f"build{cpu}_s"]
+    if per_h <= per_l:
+        return None  # never
+    return max(0.0, (fixed_l - fixed_h) / (per_h - per_l))
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--core", type=int, default=1, help="the core to pin workers to")
+    p.add_argument("--worker")
+    p.add_argument("--n", type=int, default=4096)
+    p.add_argument("--rebuilt", action="store_true")
+    p.add_argument("--repeat", action="store_true", help="grad: a second call too")
+    p.add_argument("--system", default="pendulum")
+    args = p.parse_args()
+    if args.worker:
+        print(json.dumps(WORKERS[args.worker](args)))
+        return
+    sizes = [1000, 4096] if args.quick else [1000, 4096, 10_000, 100_000, 1_000_000]
+    c = args.core
+    out = dict(sweep=[], heyoka=[])
+    for n in sizes:
+        hy = spawn(c, "heyoka", n=n)
+        lx = spawn(c, "sweep", n=n, rebuilt=(n == 4096))
+        out["heyoka"].append(hy)
+        out["sweep"].append(lx)
+        print(f"n={n:8d}  lagrax {json.dumps(lx)}\n{'':11s} heyoka {json.dumps(hy)}")
+    last = out["sweep"][-1], out["heyoka"][-1]
+    out["break_even_amplitudes"] = break_even(*last)
+    out["break_even_amplitudes_cpu"] = break_even(*last, cpu="_cpu")
+    out["grad"] = spawn(c, "grad", n=64 if args.quick else 1000)
+    print("grad", json.dumps(out["grad"]))
+    out["simulate"] = spawn(c, "simulate", n=256)
+    out["simulate_heyoka"] = spawn(c, "heyoka", n=256, system="double_pendulum")
+    print("simulate", json.dumps(out["simulate"]))
+    print("heyoka double pendulum", json.dumps(out["simulate_heyoka"]))
+    if not args.quick:
+        out["cli"] = cli_default_job(c)
+        print("cli", json.dumps(out["cli"]))
+    print(
+        "break-even amplitudes",
+        out["break_even_amplitudes"],
+        "(wall),",
+        out["break_even_amplitudes_cpu"],
+        "(CPU)",
+    )
+    meta = dict(
+        date=time.strftime("%Y-%m-%d"),
+        machine=platform.processor() or platform.machine(),
+        python=platform.python_version(),
+        core=c,
+        commit=subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=HERE,
+        ).stdout.strip(),
+    )
+    name = "first_result_quick.json" if args.quick else "first_result.json"
+    os.makedirs(RESULTS, exist_ok=True)
+    with open(os.path.join(RESULTS, name), "w") as fh:
+        json.dump(dict(meta=meta, **out), fh, indent=2)
+    print("wrote", os.path.join(RESULTS, name))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""Derivatives of periods: forward mode through the loop, and `jax.grad` through a
+`custom_jvp` whose tangents come from that forward mode.
+
+The periods are independent per lane, so their derivative with respect to the
+release points is diagonal (one forward pass), and their derivative with respect to
+parameters that `L` closes over takes one forward pass per parameter, for the inputs
+being differentiated only (the `custom_jvp` sees the others' tangents as symbolic
+zeros).
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .device import Periods, periods
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
+    return periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol)
+
+
+def _periods_jvp(L, m, devices, primals, tangents):
+    q0, consts, rtol, atol, t_max, energy_tol = primals
+    dq0, dconsts = tangents[0], tangents[1]
+    periods_of = lambda q0, consts: periods(
+        L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
+    )
+    leaves, treedef = jax.tree.flatten(consts)
+    dleaves = treedef.flatten_up_to(dconsts)
+    inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in leaves]
+    wanted = [ok and not _is_zero(dx) for ok, dx in zip(inexact, dleaves)]
+    directions = _directions(q0, dq0, leaves, wanted)
+    if not directions:  # (every tangent a symbolic zero)
+        out = periods_of(q0, consts)
+        return out, _tangents(out, jnp.zeros_like(out.periods))
+    dq_dirs = jnp.stack([d[0] for d in directions])
+    dc_dirs = [jnp.stack([d[1][k] for d in directions]) for k in range(len(leaves))]
+
+    def tangent(dq, dc):
+        dc = [
+            c if ok else np.zeros(np.shape(x), jax.dtypes.float0)
+            for c, x, ok in zip(dc, leaves, inexact)
+        ]
+        out, dout = jax.jvp(periods_of, (q0, consts), (dq, treedef.unflatten(dc)))
+        return out, dout.periods
+
+    # The primal outputs come from the same forward pass (unbatched over the
+    # directions): one copy of the sweep in the compiled program, not two.
+    out, jac = jax.vmap(tangent, out_axes=(None, 0))(dq_dirs, dc_dirs)  # (dirs, n)
+    k = 0
+    dT = jnp.zeros_like(out.periods)
+    if not _is_zero(dq0):
+        dT, k = jac[0] * dq0, 1
+    for x, dx, ok in zip(leaves, dleaves, wanted):
+        if not ok:
+            continue
+        size = int(np.size(x))
+        dT = dT + jnp.tensordot(jnp.reshape(dx, (-1,)), jac[k : k + size], axes=1)
+        k += size
+    return out, _tangents(out, dT)
+
+
+def _directions(q0, dq0, leaves, wanted):
+    """The forward passes to run, as `(dq0, dconsts)` tangent directions. Lanes are
+    independent: dT_i/dq0_j is diagonal, one pass for all of it; each scalar
+    parameter L closes over takes one more. Only for the inputs whose tangent is not
+    a symbolic zero (`symbolic_zeros=True`): the derivative with respect to q0 alone
+    of a Lagrangian with many parameters is one pass, not one per parameter."""
+    no_consts = [jnp.zeros_like(x) for x in leaves]
+    directions = [] if _is_zero(dq0) else [(jnp.ones_like(q0), no_consts)]
+    for i, (x, ok) in enumerate(zip(leaves, wanted)):
+        if not ok:
+            continue
+        for j in range(int(np.size(x))):
+            basis = list(no_consts)
+            # (A leaf may be a Python scalar with a dtype, `TypedFloat`: no `.shape`.)
+            e = jnp.zeros(np.size(x), jnp.result_type(x)).at[j].set(1)
+            basis[i] = e.reshape(np.shape(x))
+            directions.append((jnp.zeros_like(q0), basis))
+    return directions
+
+
+def _tangents(out: Periods, dT) -> Periods:
+    """The tangents of `periods`' outputs: `dT` for the periods, none for the rest."""
+    int_tangent = lambda y: np.zeros(np.shape(y), jax.dtypes.float0)
+    return Periods(
+        dT,
+        int_tangent(out.status),
+        int_tangent(out.steps),
+        int_tangent(out.executed),
+        jnp.zeros_like(out.estimate),
+    )
+
+
+periods_diff.defjvp(_periods_jvp, symbolic_zeros=True)
+
+
+def _is_zero(t):
+    """Whether a tangent is a symbolic zero (the input is not being differentiated)."""
+    return t is None or type(t) is jax.custom_derivatives.SymbolicZero

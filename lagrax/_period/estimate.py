@@ -1,0 +1,149 @@
+r"""The per-lane error estimate of a period.
+
+With a Taylor step and `"matched"`, a first-order bound summed in the same loop
+(`screen`): per step, the error bound of the step (its truncation, from the last
+coefficients, and the rounding of the state) as a time shift along the orbit and an
+energy error, which moves the end of the leg by its leverage $\int ds/\dot q^2$ over
+the rest of it (Gauss–Legendre on the step's velocity polynomial); and the far
+turning point's band times $d\tau/dE$, the finite part of that integral from rest.
+Lanes it cannot vouch for, and every other method and stepper, are solved a second
+time at `_LOOSER` times the tolerances (`second_solve_estimate`).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._results import SUCCESS
+from .._stepper.base import horner
+
+
+# The second solve: at `_LOOSER` times the tolerances (for "matched", from the far
+# turning point moved across its rounding band), and `_SAFETY` times the difference.
+# Calibrated on exact periods (tests/test_estimate.py).
+_LOOSER = 10.0
+_SAFETY = 3.0
+#: A lane's period is trusted when its estimate is below this many times rtol.
+PROMISE = 100.0
+# The first-order bound: its safety factor, and the largest leverage ∫ds/v² (lane
+# units) of a leg past its first step for which it is used: beyond, rounding of the
+# force, which it does not model, may be amplified (near a hump).
+_SCREEN_SAFETY = 3.0
+_SCREEN_LEVERAGE = 100.0
+
+_GL3 = tuple((float(x), float(w)) for x, w in zip(*np.polynomial.legendre.leggauss(3)))
+
+# The loop's per-lane sums, the columns of one array (one select per refill and per
+# step, not five): the phase (ph), energy errors times their leverage (J), ∫ds/v²
+# (F; from rest its finite part), the same without the first step (G), and the
+# energy errors so far (D). The first four are handed in.
+NUM_SUMS = 5
+SUMS_OUT = ("ph", "J", "F", "G")
+
+
+class StepTerms(eqx.Module):
+    """One step's terms of the bound: ∫ds/v² over the step (`W`) and the truncation
+    bounds of position and velocity (`dq`, `dv`)."""
+
+    W: Float[Array, " lanes"]
+    dq: Float[Array, " lanes"]
+    dv: Float[Array, " lanes"]
+
+
+class BoundTerms(eqx.Module):
+    """A leg's sums of the bound in time units (`_finish`): phase, energy errors times
+    their leverage, the finite part of ∫dt/v² from rest, and the leg's leverage past
+    its first step (infinite where the mass is not constant)."""
+
+    ph: Float[Array, " lanes"]
+    J: Float[Array, " lanes"]
+    F: Float[Array, " lanes"]
+    G: Float[Array, " lanes"]
+
+
+def step_terms(stepper, expansion, v, h) -> StepTerms:
+    """The step's terms of the bound, from its polynomials and the step `h` taken.
+
+    The truncation: the last two terms kept, the second-to-last scaled by the step's
+    ratio h/ρ to the radius of convergence (a bound on the first term dropped,
+    pessimistic by ρ/h). W = ∫ ds / v(s)² over the step by 3-point Gauss–Legendre on
+    the velocity polynomial; from rest (v = a0 s + ...) its Hadamard finite part,
+    ∫ (1/v² - 1/(a0 s)²) ds - 1/(a0² h). One division per node (each with one
+    reader: the step is one fusion). No tangents: the estimate is not
+    differentiated."""
+    scale = stepper.radius_fraction(expansion.tol)
+    terms = (expansion.xs, expansion.vs, expansion.as_, v, h, scale)
+    xs, vs, as_, v, hu, scale = jax.tree.map(jax.lax.stop_gradient, terms)
+    K = stepper.order
+    hk1 = hu ** (K - 1)
+    dq = hk1 * (jnp.abs(xs[K]) * hu + scale * jnp.abs(xs[K - 1]))
+    dv = hk1 * (jnp.abs(vs[K]) * hu + scale * jnp.abs(vs[K - 1]))
+    rest = v == 0
+    a2 = jnp.where(rest, as_[0] * as_[0], 1.0)
+    w_sum = None
+    for xi, wi in _GL3:
+        sk = 0.5 * hu * (1.0 + xi)
+        vk2 = horner(vs, sk) ** 2
+        d2 = a2 * sk * sk
+        term = wi * (d2 - jnp.where(rest, vk2, 0.0)) / (vk2 * d2)
+        w_sum = term if w_sum is None else w_sum + term
+    W = 0.5 * hu * w_sum - jnp.where(rest, 1.0 / (a2 * hu), 0.0)
+    return StepTerms(W=W, dq=dq, dv=dv)
+
+
+def step_increments(sums, terms: StepTerms, step, v):
+    """What a step adds to the sums: its errors (truncation bound plus rounding of the
+    state) as a time shift δx/|v| and an energy error per unit mass |v|δv + |a|δx;
+    an energy error made before this step moves the leg's end by its leverage
+    ∫ds/v² over the rest of the leg."""
+    eps = jnp.finfo(v.dtype).eps
+    x1, v1, a1, h, W = step.x, step.v, step.a, step.h, terms.W
+    x_err = terms.dq + 4 * eps * (1.0 + jnp.abs(x1))
+    v_err = terms.dv + 4 * eps * (jnp.abs(v1) + jnp.abs(h * a1))
+    e_err = jnp.abs(v1) * v_err + jnp.abs(a1) * x_err
+    shift_ = x_err / jnp.abs(v1)
+    from_rest = v == 0
+    inc = (shift_, sums[:, 4] * W, W, jnp.where(from_rest, 0.0, W), e_err)
+    return jax.lax.stop_gradient(jnp.stack(inc, axis=1))
+
+
+def screen(T, t_a, t_b, terms_a: BoundTerms, terms_b: BoundTerms, band, rtols):
+    r"""A first-order bound on the relative error of "matched"'s period from its
+    own solve (Taylor steps), without a second solve.
+
+    Each step's error (its truncation bound, the rounding of the state) moves the
+    leg's end in two ways: along the orbit, a time shift $\delta q/|\dot q|$; across
+    it, an energy error $\delta E$, which changes the time left to the end of the
+    leg by $\partial\tau/\partial E|_q = -\int \mathrm dt/(M\dot q^2)$ over the rest of
+    the leg (the second solution of the variational equation by reduction of order:
+    the flow $(\dot q, \ddot q)$ is the first, the Wronskian is $\propto 1/M$). The
+    loop sums both per leg (`ph`, `J`). Leg B starts at a far turning point known
+    to within `band`: its energy, and the leg's time by $d\tau/dE$, the Hadamard
+    finite part of $\int_0 \mathrm dt/(M\dot q^2)$ from rest (`F`; zero for a
+    harmonic well: isochronous). Bounded by absolute values; a constant mass is
+    assumed (infinite `G` otherwise), and a leg whose leverage `G` exceeds
+    `_SCREEN_LEVERAGE` is not bounded here (infinite)."""
+    eps = jnp.finfo(T.dtype).eps
+    T, t_a, t_b, band = jax.lax.stop_gradient((T, t_a, t_b, band))
+    a, b = terms_a, terms_b
+    err = 2 * (a.ph + a.J + b.ph + b.J + band * jnp.abs(b.F)) + 16 * eps * (t_a + t_b)
+    bound = _SCREEN_SAFETY * err / jnp.abs(T) + 64 * eps
+    usable = (a.G <= _SCREEN_LEVERAGE) & (b.G <= _SCREEN_LEVERAGE)
+    usable = usable & jnp.isfinite(bound) & jnp.isfinite(band)
+    return jnp.where(usable, bound, jnp.inf)
+
+
+def needs_second_solve(status, bound, rtols):
+    """Lanes whose first-order bound cannot vouch for their period."""
+    return (status == SUCCESS) & ~(bound <= PROMISE * rtols)
+
+
+def second_solve_estimate(T, status, T2, status2):
+    """The estimate from a second solve at looser tolerances: `_SAFETY` times the
+    relative difference plus 64 ulps; infinite where the looser solve failed and
+    the requested one did not (that says nothing sure)."""
+    eps = jnp.finfo(T.dtype).eps
+    est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
+    return jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)

@@ -1,0 +1,109 @@
+r"""A Taylor step of order $K$ (heyoka.py's method), its coefficients by recurrence.
+
+The coefficients come from the acceleration's jaxpr (`taylor_coefficients`), written
+out order by order; the step length comes from the last coefficients before the step
+is taken, so a step is never rejected. The step's outputs, and everything a caller
+reads from its polynomials (`within`), leave through ONE fusion (`one_fusion`): XLA
+on a CPU would otherwise copy the shared recurrence into each consumer.
+"""
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._taylor.program import taylor_coefficients
+from .base import (
+    AbstractStepper,
+    fused,
+    horner,
+    lane_max,
+    LaneField,
+    StepResult,
+    TaylorExpansion,
+    within_or_identity,
+)
+
+
+def _log2(n):
+    """log2 of a positive float to 0.014 (frexp and a cubic; no libm call): the
+    step-length rule's j-th roots need only a few digits."""
+    m, e = jnp.frexp(n)  # n = m 2^e, m in [1/2, 1)
+    t = 2.0 * m - 1.0
+    return e.astype(n.dtype) - 1.0 + t * (1.4425 + t * (-0.7213 + t * 0.2788))
+
+
+class TaylorStepper(AbstractStepper):
+    r"""The Taylor step of order $K$ = `order`, never longer than `max_step`.
+
+    The step length is Jorba and Zou's (and heyoka.py's),
+
+    $$h = e^{-0.7/(K-1)}\,\varepsilon^{1/K} \min_{K-3 \le j \le K}
+    \lVert (x_j, v_j)\rVert_\infty^{-1/j},\qquad
+    \varepsilon = \text{atol} + \text{rtol}\,\lVert (x_0, v_0)\rVert_\infty,$$
+
+    over the last four orders instead of two: from rest $x(s)$ is even, its odd
+    coefficients vanish, and the last two orders would rest on one number that passes
+    through zero as the amplitude varies (a first step too long by 1.4x on some
+    amplitudes). Coefficients from `coefficients`: a subclass that computes them
+    otherwise (from a tape) keeps the rest of the step.
+    """
+
+    order: int = eqx.field(static=True)
+    max_step: float = eqx.field(static=True)
+
+    rejects: ClassVar[bool] = False
+
+    @property
+    def error_order(self):
+        return self.order
+
+    @property
+    def safety(self) -> float:
+        r"""$e^{-0.7/(K-1)}$, the step-length rule's factor (a weak Python float)."""
+        return float(np.exp(-0.7 / (self.order - 1)))
+
+    def radius_fraction(self, tol):
+        r"""$h/\rho$ of a free step: the rule takes the radius of convergence $\rho$
+        times this."""
+        return self.safety * jnp.exp2(jnp.log2(tol) / self.order)
+
+    def coefficients(self, field: LaneField, s, x, v):
+        """`(xs, vs, as_)`: lists of per-lane coefficients about `(s, x, v)`."""
+        coeffs = taylor_coefficients(
+            field.scalar_accel, self.order, x.dtype, True, vectorized_trig=True
+        )
+        return coeffs(s, x, v, field.params)
+
+    def step(
+        self, field: LaneField, s, x, v, a, h, rtol, atol, *, free, cap, within=None
+    ) -> StepResult:
+        K = self.order
+        xs, vs, as_ = self.coefficients(field, s, x, v)
+        tol = atol + rtol * lane_max(jnp.maximum(jnp.abs(x), jnp.abs(v)))
+        # The root test in the log domain, max_j log2(n_j) / j, and one exp2: XLA's
+        # CPU backend calls libm's scalar `pow` once per lane, its exp2 vectorizes.
+        lg = None
+        for j in range(max(1, K - 3), K + 1):
+            n = lane_max(jnp.maximum(jnp.abs(xs[j]), jnp.abs(vs[j])))
+            lj = jnp.where(n > 0, _log2(n), -jnp.inf) / j
+            lg = lj if lg is None else jnp.maximum(lg, lj)
+        # (Each exp2 with one reader: see `fused` below.)
+        h_jz = self.safety * jnp.exp2(jnp.log2(tol) / K - lg)
+        h = jnp.where(free, jnp.minimum(h_jz, jnp.minimum(cap, self.max_step)), h)
+        h = jax.lax.stop_gradient(h)
+        x1, v1 = horner(xs, h), horner(vs, h)
+        a1 = field.accel(s + h, x1, v1)
+        raw = StepResult(x1, v1, a1, h, None, TaylorExpansion(xs, vs, as_, tol))
+        raw = within_or_identity(within)(raw)
+        # One loop for every output: the recurrence is computed once. It stays one
+        # loop only while no expensive op in it (a division, a transcendental) has
+        # several readers and the acceleration has no `one_fusion` of its own;
+        # otherwise XLA's CPU fusion splits it and copies the recurrence into each
+        # part (several times slower per lane-step).
+        x1, v1, a1, h, extras = fused(raw.x, raw.v, raw.a, raw.h, raw.extras)
+        # Chosen before it is taken: never rejected; a non-finite step fails.
+        error = jnp.where(jnp.isfinite(h), 0.0, jnp.nan)
+        return StepResult(x1, v1, a1, h, error, None, extras)

@@ -1,0 +1,130 @@
+"""`Taylor`: the period kernel's Taylor integrator, as a solver to pass."""
+
+from collections.abc import Callable
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .diffrax_solver import AbstractTaylorSolver
+from .program import taylor_coefficients
+
+
+__all__ = ["Taylor"]
+
+
+class Taylor(AbstractTaylorSolver):
+    r"""A Taylor integrator (heyoka's method) for `period` and `sweep_periods`.
+
+    Each step expands the trajectory to order $K$ about the current state (its Taylor
+    coefficients by recurrences from the acceleration's jaxpr, one transcendental
+    call per node per step), takes the step length from the last
+    coefficients (Jorba and Zou's rule, as heyoka.py does, but over the last four
+    orders instead of two: from rest the odd coefficients vanish and two orders can
+    rest on one coefficient passing through zero):
+
+    $$h = e^{-0.7/(K-1)}\,\varepsilon^{1/K} \min_{K-3 \le j \le K}
+    \lVert (x_j, v_j)\rVert_\infty^{-1/j},\qquad
+    \varepsilon = \text{atol} + \text{rtol}\,\lVert (x_0, v_0)\rVert_\infty,$$
+
+    (never longer than `max_step` in the lane's units of time, a fraction of its
+    small-amplitude period, so that no event can be stepped over), and evaluates the
+    polynomials at $h$. Nothing is rejected: the step is chosen before it is taken.
+    The polynomials are the solution over the whole step, so an event (a turning
+    point) is located inside the step that crosses it, as the root of the event
+    function's polynomial with one Newton correction by the exact event value;
+    where that correction does not settle to round-off, the step is re-taken from
+    the same base with the step length as the unknown, as for Runge–Kutta solvers.
+
+    Only for the period kernel (not a diffrax solver). The acceleration's jaxpr must
+    consist of primitives with a recurrence. For one that has none, `Taylor()` raises
+    `NotImplementedError` at the first call, naming the primitive and listing those
+    supported, and `Taylor(fallback=diffrax.Dopri8())` (the default solver of
+    `sweep_periods`) steps with the fallback instead. The fallback also steps where
+    the coefficients' straight-line program would exceed ~2000 equations (the
+    θ-form cycloid, the rotating hoop): the kernel would then loop over the orders,
+    several times slower than Dopri8 per period and slower to compile; a plain
+    `Taylor()` still takes that loop. Which one ran is `SweepResult.solver`. Its
+    forward-mode derivative (the recurrence's tangent, for `jax.grad` of a sweep)
+    compiles longer than a Runge–Kutta step's.
+
+    **Arguments:**
+
+    - `order`: $K$, the degree of the polynomials (default 20: the order heyoka.py
+        picks for float64 at its default tolerance; $K \geq 2$).
+    - `max_step`: the longest step in the lane's units of time, $\sqrt{|q_0| /
+        |\ddot q_0|}$ (default 2, a third of a small oscillation's period).
+    - `fallback`: `None` (default), or an adaptive explicit Runge–Kutta diffrax
+        solver to step with where the acceleration has a primitive without a
+        recurrence or a program too large to unroll.
+
+    **Example:**
+
+    ```python
+    L = lagrax.systems.pendulum.lagrangian()
+    res = lagrax.sweep_periods(L, jnp.linspace(0.01, 3.1, 4096), solver=lagrax.Taylor())
+    ```
+    """
+
+    order: int = eqx.field(static=True, default=20)
+    max_step: float = eqx.field(static=True, default=2.0)
+    fallback: "dfx.AbstractERK | None" = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        if not isinstance(self.order, int) or isinstance(self.order, bool):
+            raise TypeError(f"`order` must be an int >= 2; got {self.order!r}.")
+        if self.order < 2:
+            raise ValueError(f"`order` must be at least 2; got {self.order}.")
+        if not (isinstance(self.max_step, (int, float)) and 0 < self.max_step < np.inf):
+            raise ValueError(
+                f"`max_step` must be a positive finite number; got {self.max_step!r}."
+            )
+        if self.fallback is not None and not (
+            isinstance(self.fallback, dfx.AbstractERK)
+            and getattr(type(self.fallback).tableau, "b_error", None) is not None
+        ):
+            raise TypeError(
+                "`fallback` must be None or an adaptive explicit Runge–Kutta diffrax "
+                f"solver, e.g. diffrax.Dopri8(); got {self.fallback!r}."
+            )
+
+    def supports(self, accel: Callable, dtype, *params) -> bool:
+        """Whether there is a recurrence for every primitive of
+        `accel(s, x, v, *params)` (scalars `s, x, v`; `params` shape-dtype specs or
+        arrays without a lane axis): traced once, nothing is evaluated."""
+        coeffs = taylor_coefficients(lambda s, x, v, p: accel(s, x, v, *p), 2, dtype)
+        try:
+            _trace(coeffs, dtype, params)
+        except NotImplementedError:
+            return False
+        return True
+
+    def unrolls(self, accel: Callable, dtype, *params) -> bool:
+        """Whether the period kernel computes `accel`'s coefficients at this order as
+        one straight-line program (of at most ~2000 equations) rather than by the
+        slower loop over orders; arguments as `supports` (which must hold). Traced
+        once, nothing is evaluated."""
+        coeffs = taylor_coefficients(
+            lambda s, x, v, p: accel(s, x, v, *p),
+            self.order,
+            dtype,
+            unrolled=True,
+            vectorized_trig=True,
+        )
+        _trace(coeffs, dtype, params)
+        return coeffs.unrolled
+
+
+def _trace(coeffs, dtype, params):
+    """`coeffs` traced for one lane: `params` (shape-dtype specs or arrays) get a lane
+    axis of length 1."""
+    lanes = [
+        jax.ShapeDtypeStruct((1, *p.shape), p.dtype)
+        if isinstance(p, jax.ShapeDtypeStruct)
+        else jax.ShapeDtypeStruct((1, *np.shape(p)), jnp.asarray(p).dtype)
+        for p in params
+    ]
+    one = jax.ShapeDtypeStruct((1,), dtype)
+    jax.eval_shape(lambda s, x, v, p: coeffs(s, x, v, p), one, one, one, lanes)
