@@ -32,9 +32,10 @@ from .._checks import (
     positive_scalar,
 )
 from .._custom_types import GeneralizedForce, Lagrangian
-from .._jaxpr.fusion import one_fusion
+from .._stepper.base import LaneField
+from .._stepper.taylor import TaylorStepper
 from .._taylor.solver import Taylor
-from .._taylor.system import horner, System
+from .._taylor.system import System
 from .simulate import ELEMENTAL, simulate
 from .term import _LagrangeVectorField
 
@@ -43,29 +44,31 @@ from .term import _LagrangeVectorField
 _RUNNING, _DONE, _MAX_STEPS, _NONFINITE = 0, 1, 2, 3
 
 
-def _log2(n):
-    """log2 of a positive float to 0.014 (frexp and a cubic; no libm call): the
-    step-length rule needs few digits."""
-    m, e = jnp.frexp(n)
-    t = 2.0 * m - 1.0
-    return e.astype(n.dtype) - 1.0 + t * (1.4425 + t * (-0.7213 + t * 0.2788))
+class SystemTaylorStepper(TaylorStepper):
+    r"""The period loop's Taylor step (`TaylorStepper`: step length, polynomials,
+    one fusion) with its coefficients from the program of the first-order system
+    $y = (q, w)$, $q' = w$, $w' = \ddot q(\sigma	au, q, \sigma w)$ for any number
+    of coordinates: a lane integrates in its own time $	au = \sigma t$, $\sigma =
+    \pm 1$ its direction (`field.params`), so every step is forward."""
 
+    system: System = eqx.field(static=True)
 
-def step_length(coefs, K, tol):
-    r"""Jorba and Zou's step (heyoka.py's rule, over the last four orders as the
-    period kernel): $h = e^{-0.7/(K-1)} \varepsilon^{1/K} \min_{K-3 \le j \le K}
-    \lVert y_j \rVert_\infty^{-1/j}$, `coefs` one list of `K + 1` lane arrays per
-    entry of the state, `tol` $= \varepsilon$ per lane."""
-    lg = None
-    for j in range(max(1, K - 3), K + 1):
-        n = None
-        for c in coefs:
-            a = jnp.abs(c[j])
-            n = a if n is None else jnp.maximum(n, a)
-        lj = jnp.where(n > 0, _log2(jnp.where(n > 0, n, 1.0)), -jnp.inf) / j
-        lg = lj if lg is None else jnp.maximum(lg, lj)
-    c = float(np.exp(-0.7 / (K - 1)))
-    return c * jnp.exp2(jnp.log2(tol) / K - lg)
+    def coefficients(self, field, s, x, v):
+        K = self.order
+        stacked = [jnp.stack(x, axis=1), jnp.stack(v, axis=1)]
+        coefs = self.system.coefficients(K, s, stacked, [field.params], trig=True)
+        n = len(x)
+        # Per order, the state's columns as a tuple (`x`, `v` are tuples of (W,)
+        # columns): stacked into (W, n) arrays, each order would be a fusion of its
+        # own, and XLA would copy the recurrence into each.
+        at = lambda cs, k: tuple(c[k] for c in cs)
+        xs = [at(coefs[:n], k) for k in range(K + 1)]
+        vs = [at(coefs[n:], k) for k in range(K + 1)]
+        return (
+            xs,
+            vs,
+            [jax.tree.map(lambda c: (k + 1) * c, vs[k + 1]) for k in range(K)],
+        )
 
 
 class _Config(eqx.Module):
@@ -85,94 +88,98 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
     Returns the saved states `(B, T, 2n)` (`T` = the save times, then the end if
     `save_t1`), and per release the end time, the outcome and the step count.
 
-    Each lane carries its state as one `(W, m)` array and its constants as one
-    `(W, 5)` array, and the queue is one table of packed rows: a refill is one
-    gather and a lane's results one scatter (each gather, scatter or small fusion is
-    a separate call per iteration on a CPU, and a scatter is a loop over its rows).
+    Each lane carries its state as `(W, n)` arrays and its constants as one `(W, 5)`
+    array, and the queue is one table of packed rows: a refill is one gather and a
+    lane's results one scatter (each gather, scatter or small fusion is a separate
+    call per iteration on a CPU, and a scatter is a loop over its rows).
     """
     B, n = q0.shape
     dtype = q0.dtype
     W = min(cfg.width, B)
-    K = cfg.order
     M = cfg.n_save
     field = cfg.field
 
-    def f(t, ys, params):
-        q, v = ys
-        return list(field(t, (q, v), None))
+    def f(tau, ys, params):
+        q, w = ys
+        (sigma,) = params
+        return [w, field(sigma * tau, (q, sigma * w), None)[1]]
 
-    system = System(f, jnp.zeros((), dtype), [q0[0], v0[0]], [])
-    y0 = jnp.concatenate([q0, v0], axis=1)
-    m = y0.shape[1]
-    if system.scalar:
-        stack = lambda es: jnp.stack(es, axis=1)
-    else:  # the program's inputs are the leaves q, v themselves
-        stack = lambda es: jnp.concatenate(es, axis=1)
+    zero = jnp.zeros((), dtype)
+    system = System(f, zero, [q0[0], v0[0]], [zero + 1])
+    stepper = SystemTaylorStepper(order=cfg.order, max_step=np.inf, system=system)
     sign = jnp.where(t1 >= t0, 1.0, -1.0).astype(dtype)
-    # One row per release (state, t0 and the lane constants), one idle row at B.
-    T0, T1, SIGN, RTOL, ATOL = range(5)
-    consts = jnp.stack([t0, t1, sign, rtol, atol], axis=1)
-    idle = jnp.zeros((1, m + 5), dtype).at[0, m + SIGN].set(1.0)
-    table = jnp.concatenate([jnp.concatenate([y0, consts], axis=1), idle])
+    # One row per release: its state in its own time (q, sigma qdot), its start and
+    # end times sigma t0, sigma t1, sigma and its tolerances; one idle row at B.
+    S0, S1, SIGMA, RTOL, ATOL = range(5)
+    consts = jnp.stack([sign * t0, sign * t1, sign, rtol, atol], axis=1)
+    rows = jnp.concatenate([q0, sign[:, None] * v0, consts], axis=1)
+    idle = jnp.zeros((1, 2 * n + 5), dtype).at[0, 2 * n + SIGMA].set(1.0)
+    idle = idle.at[0, 2 * n + S1].set(1.0)
+    table = jnp.concatenate([rows, idle])
+    # The save times in each lane's own time: sigma ts[j].
+    taus = lambda p, j: p[:, SIGMA] * ts[jnp.minimum(j, M - 1)]
 
     def load(idx):
-        rows = table[jnp.minimum(idx, B)]
-        return rows[:, :m], rows[:, m:], idx >= B
-
-    def step(y, p, j):
-        t, s = p[:, T0], p[:, SIGN]
-        coefs = system.coefficients(K, t, [y[:, :n], y[:, n:]], [], trig=True)
-        scale = jnp.max(jnp.abs(y), axis=1)
-        h = step_length(coefs, K, p[:, ATOL] + p[:, RTOL] * scale)
-        # Never past the end, and at most one save time inside a step (the next
-        # one is evaluated on this step's polynomials).
-        left = s * (p[:, T1] - t)
-        if M:
-            after = jnp.where(
-                j + 1 < M, s * (ts[jnp.minimum(j + 1, M - 1)] - t), jnp.inf
-            )
-            left = jnp.minimum(left, after)
-        h = s * jnp.minimum(h, left)
-        out = {("y1", i): horner(c, h) for i, c in enumerate(coefs)}
-        out["h"] = h
-        if M:
-            tau = ts[jnp.minimum(j, M - 1)] - t
-            out.update({("ys", i): horner(c, tau) for i, c in enumerate(coefs)})
-        out = one_fusion(out)
-        n_in = len(coefs)
-        y1 = stack([out["y1", i] for i in range(n_in)])
-        ys = stack([out["ys", i] for i in range(n_in)]) if M else None
-        return y1, out["h"], ys
+        row = table[jnp.minimum(idx, B)]
+        return row[:, :n], row[:, n : 2 * n], row[:, 2 * n :], idx >= B
 
     def body(carry):
-        y, p, ints, done, saves, ends, nxt = carry
+        x, v, p, ints, done, saves, ends, nxt = carry
         idx, j, steps = ints[:, 0], ints[:, 1], ints[:, 2]
         active = ~done
-        y1, h, ysave = step(y, p, j)
-        t = p[:, T0] + h
-        end = active & (p[:, SIGN] * (p[:, T1] - t) <= 0)
-        t = jnp.where(end, p[:, T1], t)
-        y = jnp.where(active[:, None], y1, y)
-        steps = steps + active.astype(steps.dtype)
-        finite = jnp.isfinite(y).all(1) & jnp.isfinite(h)
+        s = p[:, S0]
+        lane_field = LaneField(
+            accel=lambda s, x, v: jax.tree.map(jnp.zeros_like, x), params=p[:, SIGMA]
+        )
+        # Never past the end, and at most one save time inside a step (the state
+        # there read from the step's polynomials, inside its fusion).
+        cap = p[:, S1] - s
         if M:
-            tj = ts[jnp.minimum(j, M - 1)]
-            hit = active & (j < M) & (p[:, SIGN] * (t - tj) >= 0)
+            after = jnp.where(j + 1 < M, taus(p, j + 1) - s, jnp.inf)
+            cap = jnp.minimum(cap, after)
+
+            def within(raw):
+                qs, ws = raw.expansion.at(taus(p, j) - s)
+                return eqx.tree_at(lambda r: r.extras, raw, (qs, ws), is_leaf=_none)
+
+        else:
+            within = None
+        cols = lambda y: tuple(y[:, i] for i in range(n))
+        step = stepper.step(
+            lane_field, s, cols(x), cols(v), cols(x), cap, p[:, RTOL], p[:, ATOL],
+            free=active, cap=cap, within=within,
+        )  # fmt: skip
+        t = s + step.h
+        end = active & (p[:, S1] - t <= 0)
+        t = jnp.where(end, p[:, S1], t)
+        x = jnp.where(active[:, None], jnp.stack(step.x, axis=1), x)
+        v = jnp.where(active[:, None], jnp.stack(step.v, axis=1), v)
+        steps = steps + active.astype(steps.dtype)
+        finite = (
+            jnp.isfinite(x).all(1) & jnp.isfinite(v).all(1) & jnp.isfinite(step.error)
+        )
+        if M:
+            hit = active & (j < M) & (t - taus(p, j) >= 0)
+            qs, ws = (jnp.stack(c, axis=1) for c in step.extras)
+            ysave = jnp.concatenate([qs, p[:, SIGMA, None] * ws], axis=1)
             saves = saves.at[jnp.where(hit, idx, B), jnp.minimum(j, M - 1)].set(ysave)
             j = j + hit.astype(j.dtype)
         finished = active & (end | ~finite | (steps >= cfg.max_steps))
         code = jnp.where(~finite, _NONFINITE, jnp.where(end, _DONE, _MAX_STEPS))
+        sigma = p[:, SIGMA, None]
         row = jnp.concatenate(
-            [y, t[:, None], code[:, None].astype(dtype), steps[:, None].astype(dtype)],
+            [x, sigma * v, sigma * t[:, None], code[:, None].astype(dtype),
+             steps[:, None].astype(dtype)],
             axis=1,
-        )
+        )  # fmt: skip
         ends = ends.at[jnp.where(finished, idx, B)].set(row)
         # Refill: finished lanes take the next releases of the queue, in lane order.
         rank = jnp.cumsum(finished.astype(idx.dtype)) - 1
         new_idx = jnp.where(finished, nxt + rank, idx)
-        y_new, p_new, idle = load(new_idx)
-        y = jnp.where(finished[:, None], y_new, y)
-        p = jnp.where(finished[:, None], p_new, p.at[:, T0].set(t))
+        x_new, v_new, p_new, idle = load(new_idx)
+        x = jnp.where(finished[:, None], x_new, x)
+        v = jnp.where(finished[:, None], v_new, v)
+        p = jnp.where(finished[:, None], p_new, p.at[:, S0].set(t))
         zero = jnp.zeros_like(j)
         ints = jnp.stack(
             [new_idx, jnp.where(finished, zero, j), jnp.where(finished, zero, steps)],
@@ -180,23 +187,28 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
         )
         done = jnp.where(finished, idle, done)
         nxt = nxt + jnp.sum(finished).astype(nxt.dtype)
-        return y, p, ints, done, saves, ends, nxt
+        return x, v, p, ints, done, saves, ends, nxt
 
     def cond(carry):
-        return jnp.any(~carry[3])
+        return jnp.any(~carry[4])
 
     idx0 = jnp.arange(W, dtype=jnp.int32)
-    y, p, done = load(idx0)
+    x, v, p, done = load(idx0)
     ints = jnp.stack([idx0, jnp.zeros_like(idx0), jnp.zeros_like(idx0)], axis=1)
-    saves = jnp.full((B + 1, M, m), jnp.nan, dtype)
-    ends = jnp.full((B + 1, m + 3), jnp.nan, dtype)
-    carry = (y, p, ints, done, saves, ends, jnp.int32(W))
+    saves = jnp.full((B + 1, M, 2 * n), jnp.nan, dtype)
+    ends = jnp.full((B + 1, 2 * n + 3), jnp.nan, dtype)
+    carry = (x, v, p, ints, done, saves, ends, jnp.int32(W))
     *_, saves, ends, _ = jax.lax.while_loop(cond, body, carry)
+    m = 2 * n
     ys = saves[:B]
     if cfg.save_t1:
         ys = jnp.concatenate([ys, ends[:B, None, :m]], axis=1)
     code = jnp.where(jnp.isnan(ends[:B, m + 1]), _RUNNING, ends[:B, m + 1])
     return ys, ends[:B, m], code.astype(jnp.int32), ends[:B, m + 2].astype(jnp.int32)
+
+
+def _none(x):
+    return x is None
 
 
 @functools.cache
