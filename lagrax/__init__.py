@@ -55,6 +55,7 @@ from ._results import (
     status_result as status_result,
 )
 from ._taylor.solver import Taylor as Taylor
+from ._trajectory.batch import simulate_batch as simulate_batch
 from ._trajectory.gauss_legendre import (
     GaussLegendre4 as GaussLegendre4,
     GaussLegendre6 as GaussLegendre6,

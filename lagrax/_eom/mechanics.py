@@ -23,6 +23,7 @@ from .._checks import check_solvable, prepare as _prepare
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
 from .._jaxpr.fusion import one_fusion
 from .._jaxpr.scalarize import scalarized
+from .._taylor.solve import definite_solve
 
 
 def _lagrange_terms(L, q, qdot, t):
@@ -101,14 +102,17 @@ def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
     `fuse`: for n <= 2, compute `qddot`, `M` and `ok` in one XLA fusion
     (`one_fusion`; default on, `False` turns it off; see below). Ignored for n > 2."""
 
+    n = q.shape[0]
+
     def solve(q, qdot, t):
         M, rhs = _lagrange_terms(L, q, qdot, t)
         if force is not None:
             rhs = rhs + force(q, qdot, t)
-        qddot, ok = _solve_definite(M, rhs)
+        # For n > 2, a named call: a Taylor step solves with M's factorization once
+        # per step, from the marked call (`lagrax._taylor.solve`).
+        qddot, ok = (_solve_definite if n <= 2 else definite_solve)(M, rhs)
         return jnp.where(ok, qddot, jnp.nan), M, ok
 
-    n = q.shape[0]
     if n <= 2:
         # Derivatives and closed-form solve evaluated entry by entry (`scalarized`):
         # under `vmap`, one fused loop over the lanes instead of 12-20 loops of tiny

@@ -40,11 +40,16 @@ class LaneField(eqx.Module):
 
 
 def horner(cs, t):
-    r"""$\sum_k c_k t^k$ for the coefficients `cs` (lowest first)."""
-    out = cs[-1]
-    for c in cs[-2::-1]:
-        out = out * t + c
-    return out
+    r"""$\sum_k c_k t^k$ for the coefficients `cs` (lowest first), each an array or a
+    pytree of arrays (a state given as its `(lanes,)` columns), leaf by leaf."""
+
+    def one(*leaves):
+        out = leaves[-1]
+        for c in leaves[-2::-1]:
+            out = out * t + c
+        return out
+
+    return jax.tree.map(one, *cs)
 
 
 def horner_with_derivative(cs, t):
@@ -106,22 +111,59 @@ class StepResult(eqx.Module):
         return ok & all_coordinates(jnp.isfinite(self.a))
 
 
+def _columns(x, op):
+    """`op` folded over the `(lanes,)` columns of `x`: elementwise, so that XLA keeps
+    it in the step's one fusion (a reduction over the coordinates would end the
+    fusion, and XLA would then copy the recurrence into each part)."""
+    if x.ndim <= 1:
+        return x
+    flat = x.reshape(x.shape[0], -1)
+    out = flat[:, 0]
+    for c in range(1, flat.shape[1]):
+        out = op(out, flat[:, c])
+    return out
+
+
 def all_coordinates(mask):
     """A per-lane mask from one per coordinate (lanes first)."""
-    return mask if mask.ndim <= 1 else jnp.all(mask, axis=tuple(range(1, mask.ndim)))
+    return _columns(mask, jnp.logical_and)
 
 
 def lane_max(x):
-    """The largest entry per lane (lanes first): the norm of a lane's state."""
-    return x if x.ndim <= 1 else jnp.max(x, axis=tuple(range(1, x.ndim)))
+    """The largest entry per lane (lanes first): the norm of a lane's state (an
+    array, or a pytree of them: the columns of a state)."""
+    leaves = [_columns(leaf, jnp.maximum) for leaf in jax.tree.leaves(x)]
+    out = leaves[0]
+    for leaf in leaves[1:]:
+        out = jnp.maximum(out, leaf)
+    return out
+
+
+def abs_max(x, v):
+    """$\max(|x|, |v|)$ entry by entry, for arrays or pytrees of them."""
+    return jax.tree.map(lambda a, b: jnp.maximum(jnp.abs(a), jnp.abs(b)), x, v)
 
 
 def fused(*trees):
     """The same pytrees of arrays, computed by XLA in one loop (`one_fusion`): what a
-    step computes shares its stages or its recurrence, computed once."""
+    step computes shares its stages or its recurrence, computed once. Leaves of
+    shape `(lanes, ...)` pass as their `(lanes,)` columns (a variadic reduction
+    takes operands of one shape)."""
     leaves, treedef = jax.tree.flatten(trees)
-    out = one_fusion(dict(enumerate(leaves)))
-    return jax.tree.unflatten(treedef, [out[i] for i in range(len(leaves))])
+    columns = {}
+    for i, leaf in enumerate(leaves):
+        flat = leaf.reshape(leaf.shape[0], -1) if leaf.ndim > 1 else leaf
+        for c in range(flat.shape[1] if leaf.ndim > 1 else 1):
+            columns[i, c] = flat[:, c] if leaf.ndim > 1 else flat
+    out = one_fusion(columns)
+    rebuilt = []
+    for i, leaf in enumerate(leaves):
+        if leaf.ndim > 1:
+            cols = [out[i, c] for c in range(leaf[0].size)]
+            rebuilt.append(jnp.stack(cols, axis=1).reshape(leaf.shape))
+        else:
+            rebuilt.append(out[i, 0])
+    return jax.tree.unflatten(treedef, rebuilt)
 
 
 class AbstractStepper(eqx.Module):

@@ -16,6 +16,7 @@ import numpy as np
 
 from .._taylor.program import taylor_coefficients
 from .base import (
+    abs_max,
     AbstractStepper,
     fused,
     horner,
@@ -82,12 +83,12 @@ class TaylorStepper(AbstractStepper):
     ) -> StepResult:
         K = self.order
         xs, vs, as_ = self.coefficients(field, s, x, v)
-        tol = atol + rtol * lane_max(jnp.maximum(jnp.abs(x), jnp.abs(v)))
+        tol = atol + rtol * lane_max(abs_max(x, v))
         # The root test in the log domain, max_j log2(n_j) / j, and one exp2: XLA's
         # CPU backend calls libm's scalar `pow` once per lane, its exp2 vectorizes.
         lg = None
         for j in range(max(1, K - 3), K + 1):
-            n = lane_max(jnp.maximum(jnp.abs(xs[j]), jnp.abs(vs[j])))
+            n = lane_max(abs_max(xs[j], vs[j]))
             lj = jnp.where(n > 0, _log2(n), -jnp.inf) / j
             lg = lj if lg is None else jnp.maximum(lg, lj)
         # (Each exp2 with one reader: see `fused` below.)

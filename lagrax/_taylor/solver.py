@@ -8,13 +8,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .diffrax_solver import AbstractTaylorSolver
 from .program import taylor_coefficients
 
 
 __all__ = ["Taylor"]
 
 
-class Taylor(eqx.Module):
+class Taylor(AbstractTaylorSolver):
     r"""A Taylor integrator (heyoka's method) for `period` and `sweep_periods`.
 
     Each step expands the trajectory to order $K$ about the current state (its Taylor

@@ -1,5 +1,6 @@
 """The one place that talks to diffrax: vector fields and `simulate`."""
 
+import functools
 from collections.abc import Callable
 
 import diffrax as dfx
@@ -20,7 +21,40 @@ from .._checks import (
 )
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
 from .._eom.mechanics import _accelerations_jit
+from .._taylor.solver import Taylor
 from .term import _LagrangeVectorField, LagrangianTerm
+
+
+# XLA's CPU fusion emitters (its default) cut a large fused Taylor step into
+# functions at values with several readers and recompute them per caller: the
+# double pendulum's order-12 step ran ~40x slower (a chain of three links did not
+# compile in minutes) than with its elemental emitters, which keep one vectorized
+# loop (one core, measured). A compile option of lagrax's own programs, not a
+# global flag: inside a caller's `jit`, the caller's options apply.
+ELEMENTAL = {"xla_cpu_use_fusion_emitters": False}
+
+
+def elemental(fn):
+    """`fn(*args, **kwargs)` compiled by `jax.jit` with `ELEMENTAL`, every leaf that
+    is not an array static (as `equinox.filter_jit` splits them)."""
+
+    def call(*args, **kwargs):
+        leaves, treedef = jax.tree.flatten((args, kwargs))
+        arrays = [x if eqx.is_array(x) else None for x in leaves]
+        static = tuple(None if eqx.is_array(x) else x for x in leaves)
+        return _elemental_jit(fn, treedef, static)(arrays)
+
+    return call
+
+
+@functools.lru_cache(maxsize=64)
+def _elemental_jit(fn, treedef, static):
+    def run(arrays):
+        leaves = [a if s is None else s for a, s in zip(arrays, static)]
+        args, kwargs = jax.tree.unflatten(treedef, leaves)
+        return fn(*args, **kwargs)
+
+    return jax.jit(run, compiler_options=ELEMENTAL)
 
 
 def vector_field(
@@ -200,7 +234,10 @@ def simulate(
     if saveat is None:
         saveat = dfx.SaveAt(t1=True)
     eager = is_concrete(q0, qdot0, t0, t1, dt0)
-    sol = dfx.diffeqsolve(
+    solve = dfx.diffeqsolve
+    if eager and isinstance(solver, Taylor) and jax.default_backend() == "cpu":
+        solve = elemental(dfx.diffeqsolve)
+    sol = solve(
         LagrangianTerm(L, force=force),
         solver,
         t0,

@@ -1,0 +1,154 @@
+r"""`lagrax.Taylor` as a diffrax solver: a step, its error estimate, its dense output.
+
+A step of length $h$ from $(t_0, y_0)$ expands the solution of $y' = f(t, y)$ to order
+$K$ about $(t_0, y_0)$ (coefficients by recurrence from the jaxpr of $f$, see
+`lagrax._taylor.system`) and evaluates the polynomial at $h$. The polynomial is the
+solution over the whole step, so it is also the step's dense output: `SaveAt(ts=...)`,
+`Solution.evaluate` and the root finding of `diffrax.Event` read it, not a
+lower-order interpolant.
+
+The error estimate is the step-length rule of Jorba and Zou (as heyoka.py and the
+period kernel use it) written as an error: per entry $i$ of $y$,
+
+$$e_i(h) = \Bigl(|h| \max_{K-3 \le j \le K} |y_{j,i}|^{1/j}\Bigr)^{K},$$
+
+the last orders' estimate of $(h/\rho)^K$ with $\rho$ the radius of convergence, of
+error order $K$. A diffrax controller that keeps $e_i \le \text{atol} + \text{rtol}
+|y_i|$ then proposes, after each step, the step the rule would choose at its start
+(scaled by its `safety`): the coefficients are computed before the step length is
+known, as diffrax's interface asks, and a step is rejected only where the rule's step
+shrinks by more than `1 - safety` from one step to the next.
+"""
+
+from collections.abc import Callable
+from typing import ClassVar
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from diffrax._term import WrapTerm  # (how diffeqsolve integrates backwards in time)
+
+from .._jaxpr.fusion import one_fusion
+
+
+class TaylorInterpolation(dfx.AbstractLocalInterpolation):
+    r"""The step's own polynomial, $y(t) = \sum_{k=0}^K y_k (t - t_0)^k$ on
+    $[t_0, t_1]$: the dense output of `lagrax.Taylor`."""
+
+    t0: jax.Array
+    t1: jax.Array
+    coeffs: list  # per leaf of y: an array (K + 1, *shape), lowest order first
+
+    def evaluate(self, t0, t1=None, left=True):
+        del left
+        if t1 is not None:
+            return jtu.tree_map(jnp.subtract, self.evaluate(t1), self.evaluate(t0))
+        tau = t0 - self.t0
+
+        def horner(c):
+            out = c[-1]
+            for ck in c[-2::-1]:
+                out = out * tau + ck
+            return out
+
+        return jtu.tree_map(horner, self.coeffs)
+
+
+def _ode_term(terms):
+    """The `diffrax.ODETerm` inside `terms` (through diffrax's time reversal)."""
+    inner = terms
+    while isinstance(inner, WrapTerm):
+        inner = inner.term
+    if not isinstance(inner, dfx.ODETerm):
+        raise TypeError(
+            "lagrax.Taylor solves ordinary differential equations: `terms` must be a "
+            f"diffrax.ODETerm (or a subclass such as lagrax.LagrangianTerm); got "
+            f"{type(inner).__name__}."
+        )
+    return terms
+
+
+def _error(cs, h, K):
+    r"""$e(h) = (|h| \max_j |c_j|^{1/j})^K$ over the last four orders, in base 2."""
+    lg = None
+    for j in range(max(1, K - 3), K + 1):
+        a = jnp.abs(cs[j])
+        lj = jnp.where(a > 0, jnp.log2(jnp.where(a > 0, a, 1.0)), -jnp.inf) / j
+        lg = lj if lg is None else jnp.maximum(lg, lj)
+    return jnp.exp2(K * (jnp.log2(jnp.abs(h)) + lg))
+
+
+class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
+    """The diffrax side of `lagrax.Taylor` (see its docstring)."""
+
+    order: eqx.AbstractVar[int]
+
+    term_structure: ClassVar = dfx.AbstractTerm
+    interpolation_cls: ClassVar[Callable[..., TaylorInterpolation]] = (
+        TaylorInterpolation
+    )
+
+    def error_order(self, terms):
+        return self.order
+
+    def strong_order(self, terms):
+        return None
+
+    def init(self, terms, t0, t1, y0, args):
+        _ode_term(terms)
+        return None
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        del solver_state, made_jump
+        from .system import horner, System  # (system imports the recurrences)
+
+        _ode_term(terms)
+        K = self.order
+        leaves, treedef = jtu.tree_flatten(y0)
+        dynamic, static = eqx.partition(args, eqx.is_array)
+        arg_leaves, arg_def = jtu.tree_flatten(dynamic)
+        t0 = jnp.asarray(t0)
+        # d/dt of an ODE term's `contr` (1, or -1 through diffrax's time reversal).
+        unit = jnp.asarray(terms.contr(t0, t0 + 1), t0.dtype)
+
+        def f(t, ys, params):
+            u, *rest = params
+            a = eqx.combine(jtu.tree_unflatten(arg_def, rest), static)
+            out = terms.vf_prod(t, jtu.tree_unflatten(treedef, ys), a, u)
+            out_leaves, out_def = jtu.tree_flatten(out)
+            if out_def != treedef:
+                raise TypeError(
+                    "the vector field must return a pytree of the state's structure "
+                    f"{treedef}; got {out_def}."
+                )
+            return out_leaves
+
+        system = System(f, t0, leaves, [unit, *arg_leaves])
+        lane = lambda a: jnp.asarray(a)[None]
+        coefs = system.coefficients(
+            K,
+            lane(t0),
+            [lane(y) for y in leaves],
+            [lane(p) for p in (unit, *arg_leaves)],
+        )
+        h = jnp.asarray(t1 - t0, t0.dtype)
+        values = {}
+        for i, c in enumerate(coefs):
+            values[("y1", i)] = horner(c, h)
+            values[("err", i)] = jax.lax.stop_gradient(_error(c, h, K))
+        # One loop for the new state and the estimate: without it XLA copies the
+        # recurrence into each output's loop (see `one_fusion`).
+        values = one_fusion(values)
+        n = len(coefs)
+        y1 = system.join([values["y1", i] for i in range(n)])
+        err = system.join([values["err", i] for i in range(n)])
+        orders = [system.join([c[k] for c in coefs]) for k in range(K + 1)]
+        dense = [jnp.stack([o[i] for o in orders])[:, 0] for i in range(len(leaves))]
+        unflat = lambda xs: jtu.tree_unflatten(treedef, [x[0] for x in xs])
+        dense_info = dict(coeffs=jtu.tree_unflatten(treedef, dense))
+        return unflat(y1), unflat(err), dense_info, None, dfx.RESULTS.successful

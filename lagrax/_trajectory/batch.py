@@ -1,0 +1,433 @@
+r"""Many trajectories at once: one compiled loop per device over refilling lanes.
+
+`simulate_batch` integrates a batch of releases with `lagrax.Taylor` in one
+`lax.while_loop` per device over `width` lanes, not as `jax.vmap` of a diffrax solve.
+Every iteration advances every lane by one Taylor step computed on the lane-batched
+arrays (the coefficient program of the vector field, unrolled over the orders and
+fused by XLA into one loop over the lanes), with the step length chosen from the
+last coefficients before the step (never rejected, as heyoka.py does); a lane whose
+trajectory ends writes its result and takes the next release from the queue, so lanes
+never wait for the slowest one. States at the requested times come from the step's
+own polynomials. With another solver it is `jax.vmap` of `lagrax.simulate`.
+
+Why not `vmap(diffeqsolve)`: under `vmap` diffrax's loop runs every lane to the
+slowest one's step count and pays its general bookkeeping per lane-step (stage loop,
+controller, saving), several times the Taylor step of a small system.
+"""
+
+import functools
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import (
+    as_real_array,
+    check_callable,
+    check_instance,
+    is_concrete,
+    positive_int,
+    positive_scalar,
+)
+from .._custom_types import GeneralizedForce, Lagrangian
+from .._stepper.base import LaneField
+from .._stepper.taylor import TaylorStepper
+from .._taylor.solver import Taylor
+from .._taylor.system import System
+from .simulate import ELEMENTAL, simulate
+from .term import _LagrangeVectorField
+
+
+# Per-lane outcome codes of the loop, mapped onto diffrax.RESULTS at the end.
+_RUNNING, _DONE, _MAX_STEPS, _NONFINITE = 0, 1, 2, 3
+
+
+class SystemTaylorStepper(TaylorStepper):
+    r"""The period loop's Taylor step (`TaylorStepper`: step length, polynomials,
+    one fusion) with its coefficients from the program of the first-order system
+    $y = (q, w)$, $q' = w$, $w' = \ddot q(\sigma	au, q, \sigma w)$ for any number
+    of coordinates: a lane integrates in its own time $	au = \sigma t$, $\sigma =
+    \pm 1$ its direction (`field.params`), so every step is forward."""
+
+    system: System = eqx.field(static=True)
+
+    def coefficients(self, field, s, x, v):
+        K = self.order
+        stacked = [jnp.stack(x, axis=1), jnp.stack(v, axis=1)]
+        coefs = self.system.coefficients(K, s, stacked, [field.params], trig=True)
+        n = len(x)
+        # Per order, the state's columns as a tuple (`x`, `v` are tuples of (W,)
+        # columns): stacked into (W, n) arrays, each order would be a fusion of its
+        # own, and XLA would copy the recurrence into each.
+        at = lambda cs, k: tuple(c[k] for c in cs)
+        xs = [at(coefs[:n], k) for k in range(K + 1)]
+        vs = [at(coefs[n:], k) for k in range(K + 1)]
+        return (
+            xs,
+            vs,
+            [jax.tree.map(lambda c: (k + 1) * c, vs[k + 1]) for k in range(K)],
+        )
+
+
+class _Config(eqx.Module):
+    """What the compiled loop depends on besides array values (hashable)."""
+
+    field: _LagrangeVectorField
+    order: int = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    n_save: int = eqx.field(static=True)
+    save_t1: bool = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+
+
+def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
+    """All releases through `cfg.width` refilling lanes of one device.
+
+    Returns the saved states `(B, T, 2n)` (`T` = the save times, then the end if
+    `save_t1`), and per release the end time, the outcome and the step count.
+
+    Each lane carries its state as `(W, n)` arrays and its constants as one `(W, 5)`
+    array, and the queue is one table of packed rows: a refill is one gather and a
+    lane's results one scatter (each gather, scatter or small fusion is a separate
+    call per iteration on a CPU, and a scatter is a loop over its rows).
+    """
+    B, n = q0.shape
+    dtype = q0.dtype
+    W = min(cfg.width, B)
+    M = cfg.n_save
+    field = cfg.field
+
+    def f(tau, ys, params):
+        q, w = ys
+        (sigma,) = params
+        return [w, field(sigma * tau, (q, sigma * w), None)[1]]
+
+    zero = jnp.zeros((), dtype)
+    system = System(f, zero, [q0[0], v0[0]], [zero + 1])
+    stepper = SystemTaylorStepper(order=cfg.order, max_step=np.inf, system=system)
+    sign = jnp.where(t1 >= t0, 1.0, -1.0).astype(dtype)
+    # One row per release: its state in its own time (q, sigma qdot), its start and
+    # end times sigma t0, sigma t1, sigma and its tolerances; one idle row at B.
+    S0, S1, SIGMA, RTOL, ATOL = range(5)
+    consts = jnp.stack([sign * t0, sign * t1, sign, rtol, atol], axis=1)
+    rows = jnp.concatenate([q0, sign[:, None] * v0, consts], axis=1)
+    idle = jnp.zeros((1, 2 * n + 5), dtype).at[0, 2 * n + SIGMA].set(1.0)
+    idle = idle.at[0, 2 * n + S1].set(1.0)
+    table = jnp.concatenate([rows, idle])
+    # The save times in each lane's own time: sigma ts[j].
+    taus = lambda p, j: p[:, SIGMA] * ts[jnp.minimum(j, M - 1)]
+
+    def load(idx):
+        row = table[jnp.minimum(idx, B)]
+        return row[:, :n], row[:, n : 2 * n], row[:, 2 * n :], idx >= B
+
+    def body(carry):
+        x, v, p, ints, done, saves, ends, nxt = carry
+        idx, j, steps = ints[:, 0], ints[:, 1], ints[:, 2]
+        active = ~done
+        s = p[:, S0]
+        lane_field = LaneField(
+            accel=lambda s, x, v: jax.tree.map(jnp.zeros_like, x), params=p[:, SIGMA]
+        )
+        # Never past the end, and at most one save time inside a step (the state
+        # there read from the step's polynomials, inside its fusion).
+        cap = p[:, S1] - s
+        if M:
+            after = jnp.where(j + 1 < M, taus(p, j + 1) - s, jnp.inf)
+            cap = jnp.minimum(cap, after)
+
+            def within(raw):
+                qs, ws = raw.expansion.at(taus(p, j) - s)
+                return eqx.tree_at(lambda r: r.extras, raw, (qs, ws), is_leaf=_none)
+
+        else:
+            within = None
+        cols = lambda y: tuple(y[:, i] for i in range(n))
+        step = stepper.step(
+            lane_field, s, cols(x), cols(v), cols(x), cap, p[:, RTOL], p[:, ATOL],
+            free=active, cap=cap, within=within,
+        )  # fmt: skip
+        t = s + step.h
+        end = active & (p[:, S1] - t <= 0)
+        t = jnp.where(end, p[:, S1], t)
+        x = jnp.where(active[:, None], jnp.stack(step.x, axis=1), x)
+        v = jnp.where(active[:, None], jnp.stack(step.v, axis=1), v)
+        steps = steps + active.astype(steps.dtype)
+        finite = (
+            jnp.isfinite(x).all(1) & jnp.isfinite(v).all(1) & jnp.isfinite(step.error)
+        )
+        if M:
+            hit = active & (j < M) & (t - taus(p, j) >= 0)
+            qs, ws = (jnp.stack(c, axis=1) for c in step.extras)
+            ysave = jnp.concatenate([qs, p[:, SIGMA, None] * ws], axis=1)
+            saves = saves.at[jnp.where(hit, idx, B), jnp.minimum(j, M - 1)].set(ysave)
+            j = j + hit.astype(j.dtype)
+        finished = active & (end | ~finite | (steps >= cfg.max_steps))
+        code = jnp.where(~finite, _NONFINITE, jnp.where(end, _DONE, _MAX_STEPS))
+        sigma = p[:, SIGMA, None]
+        row = jnp.concatenate(
+            [x, sigma * v, sigma * t[:, None], code[:, None].astype(dtype),
+             steps[:, None].astype(dtype)],
+            axis=1,
+        )  # fmt: skip
+        ends = ends.at[jnp.where(finished, idx, B)].set(row)
+        # Refill: finished lanes take the next releases of the queue, in lane order.
+        rank = jnp.cumsum(finished.astype(idx.dtype)) - 1
+        new_idx = jnp.where(finished, nxt + rank, idx)
+        x_new, v_new, p_new, idle = load(new_idx)
+        x = jnp.where(finished[:, None], x_new, x)
+        v = jnp.where(finished[:, None], v_new, v)
+        p = jnp.where(finished[:, None], p_new, p.at[:, S0].set(t))
+        zero = jnp.zeros_like(j)
+        ints = jnp.stack(
+            [new_idx, jnp.where(finished, zero, j), jnp.where(finished, zero, steps)],
+            axis=1,
+        )
+        done = jnp.where(finished, idle, done)
+        nxt = nxt + jnp.sum(finished).astype(nxt.dtype)
+        return x, v, p, ints, done, saves, ends, nxt
+
+    def cond(carry):
+        return jnp.any(~carry[4])
+
+    idx0 = jnp.arange(W, dtype=jnp.int32)
+    x, v, p, done = load(idx0)
+    ints = jnp.stack([idx0, jnp.zeros_like(idx0), jnp.zeros_like(idx0)], axis=1)
+    saves = jnp.full((B + 1, M, 2 * n), jnp.nan, dtype)
+    ends = jnp.full((B + 1, 2 * n + 3), jnp.nan, dtype)
+    carry = (x, v, p, ints, done, saves, ends, jnp.int32(W))
+    *_, saves, ends, _ = jax.lax.while_loop(cond, body, carry)
+    m = 2 * n
+    ys = saves[:B]
+    if cfg.save_t1:
+        ys = jnp.concatenate([ys, ends[:B, None, :m]], axis=1)
+    code = jnp.where(jnp.isnan(ends[:B, m + 1]), _RUNNING, ends[:B, m + 1])
+    return ys, ends[:B, m], code.astype(jnp.int32), ends[:B, m + 2].astype(jnp.int32)
+
+
+def _none(x):
+    return x is None
+
+
+@functools.cache
+def _compiled(cpu, devices):
+    """`_run` compiled once per configuration; over several devices, each runs its
+    own loop over its share of the releases (`jax.shard_map`)."""
+    if len(devices) == 1:
+        fn = _run
+    else:
+        mesh = jax.sharding.Mesh(np.array(devices), ("releases",))
+        lanes, rep = (
+            jax.sharding.PartitionSpec("releases"),
+            jax.sharding.PartitionSpec(),
+        )
+
+        def fn(cfg, *args):
+            return jax.shard_map(
+                functools.partial(_run, cfg),
+                mesh=mesh,
+                in_specs=(lanes,) * 6 + (rep,),
+                out_specs=lanes,
+                check_vma=False,
+            )(*args)
+
+    return jax.jit(fn, static_argnums=(0,), compiler_options=ELEMENTAL if cpu else None)
+
+
+def _saveat_plan(saveat, t0, t1):
+    """`(ts, save_t1)` for a `SaveAt` the loop supports (`t1`, `ts`, `t0`), else
+    None (then `vmap(simulate)` does it)."""
+    if saveat is None:
+        return None, True
+    sub = saveat.subs
+    if not isinstance(sub, dfx.SubSaveAt) or sub.steps or saveat.dense:
+        return "vmap"
+    if sub.fn is not dfx.SubSaveAt.__dataclass_fields__["fn"].default:
+        return "vmap"
+    ts = None if sub.ts is None else jnp.asarray(sub.ts)
+    if sub.t0:
+        return "vmap"
+    return ts, bool(sub.t1)
+
+
+def simulate_batch(
+    L: Lagrangian,
+    q0,
+    qdot0,
+    t0,
+    t1,
+    *,
+    force: GeneralizedForce | None = None,
+    solver: dfx.AbstractSolver | None = None,
+    saveat: dfx.SaveAt | None = None,
+    rtol=1e-8,
+    atol=1e-8,
+    max_steps: int = 16384,
+    throw: bool = True,
+    width: int = 256,
+    **kwargs,
+) -> dfx.Solution:
+    r"""Integrates Lagrange's equations from a batch of releases, batch axis first.
+
+    The batched form of `lagrax.simulate`: release $b$ starts at
+    $(q_0[b], \dot q_0[b])$ at $t_0[b]$ and ends at $t_1[b]$ (scalars apply to every
+    release). With `solver=lagrax.Taylor(...)` (the default, order 20) the batch runs
+    in one compiled loop per device (see the module docstring): step lengths by the
+    rule of Jorba and Zou from the last coefficients with
+    $\varepsilon = \text{atol} + \text{rtol}\,\lVert y\rVert_\infty$ per release,
+    saved states from the steps' polynomials. Any other solver, or a `SaveAt` or
+    keyword the loop does not take (`t0=True`, `steps`, `dense`, `fn`, `event`,
+    `adjoint`, a `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate`
+    with the same arguments.
+
+    **Arguments:** as `lagrax.simulate`, with `q0`, `qdot0` of shape `(B, n)`,
+    `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, and
+
+    - `width`: lanes of the compiled loop (default 256).
+
+    **Returns:**
+
+    A `diffrax.Solution` whose every array has the batch axis first: `ts` `(B, T)`,
+    `ys = (qs, qdots)` of shape `(B, T, n)`, `result` `(B,)` (per release:
+    `successful`, `max_steps_reached`, or `nonfinite` where the state stopped being
+    finite, e.g. a singular mass matrix), `stats["num_steps"]` `(B,)`.
+
+    **Raises:** as `lagrax.simulate`; with `throw=True`, a `RuntimeError` naming how
+    many releases failed.
+
+    **Example:**
+
+    ```python
+    q0 = jax.random.uniform(key, (1024, 2), minval=-1.0, maxval=1.0)
+    sol = lagrax.simulate_batch(L, q0, jnp.zeros_like(q0), 0.0, 10.0,
+                                rtol=1e-12, atol=1e-12)
+    sol.ys[0][:, -1]  # q at t = 10 for every release
+    ```
+    """
+    check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
+    solver = Taylor() if solver is None else solver
+    check_instance(solver, "solver", dfx.AbstractSolver, "a diffrax solver")
+    q0 = as_real_array(q0, "q0")
+    qdot0 = as_real_array(qdot0, "qdot0")
+    if q0.ndim != 2 or qdot0.shape != q0.shape:
+        raise ValueError(
+            "`q0` and `qdot0` must have shape (B, n), the batch axis first; got "
+            f"{q0.shape} and {qdot0.shape}."
+        )
+    dtype = jnp.result_type(q0, qdot0)
+    q0, qdot0 = q0.astype(dtype), qdot0.astype(dtype)
+    B = q0.shape[0]
+    lanes = lambda x, name: _per_release(x, name, B, dtype)
+    t0, t1 = lanes(t0, "t0"), lanes(t1, "t1")
+    rtol = lanes(_positive(rtol, "rtol", dtype), "rtol")
+    atol = lanes(_positive(atol, "atol", dtype), "atol")
+    max_steps = positive_int(max_steps, "max_steps")
+    width = positive_int(width, "width")
+    plan = _saveat_plan(saveat, t0, t1)
+    if not isinstance(solver, Taylor) or plan == "vmap" or kwargs:
+
+        def one(q, v, a, b, r, s):
+            return simulate(
+                L, q, v, a, b, force=force, solver=solver, saveat=saveat, rtol=r,
+                atol=s, max_steps=max_steps, throw=False, **kwargs,
+            )  # fmt: skip
+
+        sol = jax.vmap(one)(q0, qdot0, t0, t1, rtol, atol)
+        return _raise_if_failed(sol, throw)
+    ts, save_t1 = plan
+    cfg = _Config(
+        field=_LagrangeVectorField(L, force),
+        order=solver.order,
+        width=width,
+        n_save=0 if ts is None else int(ts.shape[0]),
+        save_t1=save_t1,
+        max_steps=max_steps,
+    )
+    ts_arr = jnp.zeros((0,), dtype) if ts is None else ts.astype(dtype)
+    cpu = jax.default_backend() == "cpu"
+    devices = tuple(jax.local_devices())
+    D = len(devices) if B >= len(devices) else 1
+    args = (q0, qdot0, t0, t1, rtol, atol)
+    if B % D:  # padded with copies of the last release, dropped below
+        args = tuple(
+            jnp.concatenate([a, jnp.repeat(a[-1:], D - B % D, 0)]) for a in args
+        )
+    ys, tend, code, nsteps = _compiled(cpu, devices[:D])(cfg, *args, ts_arr)
+    ys, tend, code, nsteps = ys[:B], tend[:B], code[:B], nsteps[:B]
+    n = q0.shape[1]
+    qs, vs = ys[..., :n], ys[..., n:]
+    times = []
+    if ts is not None:
+        times.append(jnp.broadcast_to(ts_arr, (B, ts_arr.shape[0])))
+    if save_t1:
+        times.append(tend[:, None])
+    value = lambda r: r._value  # (an enumeration item's int: `where` is scalar-only)
+    result = eqx.tree_at(
+        value,
+        dfx.RESULTS.successful,
+        jnp.where(
+            code == _DONE,
+            value(dfx.RESULTS.successful),
+            jnp.where(
+                code == _MAX_STEPS,
+                value(dfx.RESULTS.max_steps_reached),
+                value(dfx.RESULTS.nonfinite),
+            ),
+        ),
+    )
+    ok = (code == _DONE)[:, None, None]
+    sol = dfx.Solution(
+        t0=t0,
+        t1=t1,
+        ts=jnp.concatenate(times, axis=1),
+        ys=(jnp.where(ok, qs, jnp.nan), jnp.where(ok, vs, jnp.nan)),
+        interpolation=None,
+        stats=dict(
+            num_steps=nsteps,
+            num_accepted_steps=nsteps,
+            num_rejected_steps=jnp.zeros_like(nsteps),
+            max_steps=max_steps,
+        ),
+        result=result,
+        solver_state=None,
+        controller_state=None,
+        made_jump=None,
+        event_mask=None,
+    )
+    return _raise_if_failed(sol, throw)
+
+
+def _positive(x, name, dtype):
+    if jnp.ndim(x) == 0:
+        return positive_scalar(x, name, dtype)
+    return as_real_array(x, name).astype(dtype)
+
+
+def _per_release(x, name, B, dtype):
+    x = jnp.asarray(x, dtype)
+    if x.ndim == 0:
+        return jnp.broadcast_to(x, (B,))
+    if x.shape != (B,):
+        raise ValueError(
+            f"`{name}` must be a scalar or of shape ({B},); got {x.shape}."
+        )
+    return x
+
+
+def _raise_if_failed(sol, throw):
+    if not throw:
+        return sol
+    failed = (sol.result != dfx.RESULTS.successful) & (
+        sol.result != dfx.RESULTS.event_occurred
+    )
+    if is_concrete(sol.result._value):
+        count = int(jnp.sum(failed))
+        if count:
+            raise RuntimeError(
+                f"lagrax.simulate_batch: {count} of {failed.shape[0]} releases "
+                "failed (see `Solution.result` with throw=False)."
+            )
+        return sol
+    return sol.result.error_if(sol, failed)

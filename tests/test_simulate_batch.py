@@ -1,0 +1,119 @@
+"""`lagrax.simulate_batch`: the refilling Taylor loop against exact solutions and
+`simulate`, saved times, per-release spans and outcomes, the fallback."""
+
+import diffrax as dfx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lagrax
+
+
+def oscillator(q, qdot, t):
+    # x'' = -x: q(t) = q0 cos t + v0 sin t.
+    return 0.5 * jnp.sum(qdot**2) - 0.5 * jnp.sum(q**2)
+
+
+def exact(q0, v0, t):
+    return q0 * np.cos(t) + v0 * np.sin(t), -q0 * np.sin(t) + v0 * np.cos(t)
+
+
+TAYLOR = lagrax.Taylor(order=10)
+
+
+def test_refilling_lanes_per_release_spans_and_directions():
+    # 7 releases through 3 lanes: the queue refills; spans differ, two run backwards.
+    rng = np.random.default_rng(0)
+    q0 = rng.uniform(-1, 1, (7, 2))
+    v0 = rng.uniform(-1, 1, (7, 2))
+    t1 = np.array([1.0, 5.0, 0.5, 9.0, -2.0, 3.0, -7.5])
+    sol = lagrax.simulate_batch(
+        oscillator, q0, v0, 0.0, t1, solver=TAYLOR, rtol=1e-13, atol=1e-13, width=3
+    )
+    assert sol.ys[0].shape == (7, 1, 2) and sol.ts.shape == (7, 1)
+    assert np.all(np.asarray(sol.result == dfx.RESULTS.successful))
+    np.testing.assert_allclose(sol.ts[:, 0], t1)
+    q, v = exact(q0, v0, t1[:, None])
+    np.testing.assert_allclose(sol.ys[0][:, 0], q, atol=1e-11)
+    np.testing.assert_allclose(sol.ys[1][:, 0], v, atol=1e-11)
+    # Longer spans take more steps, each release its own count.
+    steps = np.asarray(sol.stats["num_steps"])
+    assert steps[3] > steps[0] > 0
+
+
+def test_saved_times_from_the_step_polynomials():
+    ts = jnp.linspace(0.0, 6.0, 25)  # several per step at this tolerance
+    q0 = np.array([[1.0], [0.3]])
+    v0 = np.array([[0.0], [-0.5]])
+    sol = lagrax.simulate_batch(
+        oscillator,
+        q0,
+        v0,
+        0.0,
+        6.0,
+        solver=TAYLOR,
+        rtol=1e-12,
+        atol=1e-12,
+        saveat=dfx.SaveAt(ts=ts),
+    )
+    assert sol.ys[0].shape == (2, 25, 1)
+    q, v = exact(q0[:, None, :], v0[:, None, :], np.asarray(ts)[None, :, None])
+    np.testing.assert_allclose(sol.ys[0], q, atol=1e-10)
+    np.testing.assert_allclose(sol.ys[1], v, atol=1e-10)
+
+
+def test_agrees_with_simulate_and_reports_failures_per_release():
+    def L(q, qdot, t):
+        # A mass q^2 that vanishes at q = 0: released there, q'' is NaN.
+        return 0.5 * q[0] ** 2 * qdot[0] ** 2 - 0.5 * (q[0] - 1.0) ** 2
+
+    q0 = np.array([[1.5], [0.0], [0.8]])
+    v0 = np.zeros((3, 1))
+    sol = lagrax.simulate_batch(
+        L, q0, v0, 0.0, 2.0, solver=TAYLOR, rtol=1e-12, atol=1e-12, throw=False
+    )
+    ok = np.asarray(sol.result == dfx.RESULTS.successful)
+    assert list(ok) == [True, False, True]
+    assert np.asarray(sol.result == dfx.RESULTS.nonfinite)[1]
+    assert np.isnan(np.asarray(sol.ys[0][1])).all()  # never a number for a failure
+    for i in (0, 2):
+        ref = lagrax.simulate(
+            L, q0[i], v0[i], 0.0, 2.0, solver=dfx.Dopri8(), rtol=1e-13, atol=1e-13
+        )
+        np.testing.assert_allclose(sol.ys[0][i, -1], ref.ys[0][-1], atol=1e-10)
+    with pytest.raises(RuntimeError, match="1 of 3 releases failed"):
+        lagrax.simulate_batch(L, q0, v0, 0.0, 2.0, solver=TAYLOR)
+
+
+def test_max_steps_per_release():
+    q0, v0 = np.array([[1.0], [1.0]]), np.zeros((2, 1))
+    sol = lagrax.simulate_batch(
+        oscillator,
+        q0,
+        v0,
+        0.0,
+        np.array([0.1, 50.0]),
+        solver=TAYLOR,
+        max_steps=8,
+        throw=False,
+    )
+    assert np.asarray(sol.result == dfx.RESULTS.successful)[0]
+    assert np.asarray(sol.result == dfx.RESULTS.max_steps_reached)[1]
+
+
+def test_other_solvers_run_vmap_of_simulate():
+    q0, v0 = np.array([[1.0], [0.5]]), np.zeros((2, 1))
+    sol = lagrax.simulate_batch(
+        oscillator, q0, v0, 0.0, 1.0, solver=dfx.Tsit5(), rtol=1e-10, atol=1e-10
+    )
+    q, _ = exact(q0, v0, 1.0)
+    np.testing.assert_allclose(sol.ys[0][:, -1], q, atol=1e-8)
+
+
+def test_bad_shapes():
+    with pytest.raises(ValueError, match=r"shape \(B, n\)"):
+        lagrax.simulate_batch(oscillator, np.zeros(3), np.zeros(3), 0.0, 1.0)
+    with pytest.raises(ValueError, match="`t1` must be a scalar or of shape"):
+        lagrax.simulate_batch(
+            oscillator, np.zeros((3, 1)), np.zeros((3, 1)), 0.0, np.ones(2)
+        )

@@ -1,0 +1,179 @@
+"""`lagrax.Taylor` as a diffrax solver: plain vector fields, dense output, events,
+batching, derivatives, time reversal, and Lagrangians through `simulate`."""
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import lagrax
+
+
+K = 6  # a low order keeps compile times small; the method is the same at any K
+
+
+def oscillator(t, y, args):
+    # x'' = -w^2 x as a dict state: any pytree, no lagrax mechanics.
+    w = args["w"]
+    return {"x": y["v"], "v": -(w**2) * y["x"]}
+
+
+def solve(y0, t1, *, args=None, solver=None, dt0=None, **kw):
+    kw.setdefault("stepsize_controller", dfx.PIDController(rtol=1e-12, atol=1e-12))
+    return dfx.diffeqsolve(
+        dfx.ODETerm(oscillator),
+        solver or lagrax.Taylor(order=K),
+        0.0,
+        t1,
+        dt0,
+        y0,
+        args=args or {"w": jnp.asarray(2.0)},
+        **kw,
+    )
+
+
+def test_plain_vector_field_pytree_state_and_dense_output():
+    # Exact: x = cos(2t), v = -2 sin(2t); dense output read from the polynomials.
+    ts = jnp.linspace(0.0, 5.0, 23)
+    y0 = {"x": jnp.asarray(1.0), "v": jnp.asarray(0.0)}
+    sol = solve(y0, 5.0, saveat=dfx.SaveAt(ts=ts, dense=True))
+    assert sol.result == dfx.RESULTS.successful
+    np.testing.assert_allclose(sol.ys["x"], jnp.cos(2 * ts), atol=1e-10)
+    np.testing.assert_allclose(sol.ys["v"], -2 * jnp.sin(2 * ts), atol=2e-10)
+    # Between steps and save points: the step's polynomial.
+    tt = jnp.linspace(0.0, 5.0, 97)
+    dense = jax.vmap(sol.evaluate)(tt)["x"]
+    np.testing.assert_allclose(dense, jnp.cos(2 * tt), atol=1e-10)
+
+
+def test_event_located_on_the_polynomial():
+    # First zero of x = cos(2t): t = pi/4.
+    event = dfx.Event(
+        lambda t, y, args, **kw: y["x"], root_finder=optx.Newton(1e-13, 1e-13)
+    )
+    y0 = {"x": jnp.asarray(1.0), "v": jnp.asarray(0.0)}
+    sol = solve(y0, 10.0, event=event)
+    assert sol.result == dfx.RESULTS.event_occurred
+    np.testing.assert_allclose(sol.ts[-1], np.pi / 4, atol=1e-11)
+
+
+def test_vmap_lanes_match_single_solves_and_backward_time():
+    ws = jnp.array([0.5, 1.0, 3.0])
+
+    def final(w, t1):
+        y0 = {"x": jnp.asarray(1.0), "v": jnp.asarray(0.0)}
+        return solve(y0, t1, args={"w": w}).ys["x"][-1]
+
+    out = jax.jit(jax.vmap(final, (0, None)))(ws, 3.0)
+    for w, x in zip(ws, out):
+        assert float(x) == pytest.approx(float(final(w, 3.0)), abs=1e-13)
+        assert float(x) == pytest.approx(np.cos(3.0 * float(w)), abs=1e-10)
+    # t1 < t0: diffrax reverses time around the solver; cos is even.
+    assert float(final(ws[1], -3.0)) == pytest.approx(np.cos(3.0), abs=1e-10)
+
+
+def _final_x(x0, w, adjoint):
+    # x(t) = x0 cos(wt) + v0 sin(wt)/w: dx/dx0 = cos(wt), dx/dw = -x0 t sin(wt).
+    y0 = {"x": x0, "v": jnp.zeros_like(x0)}
+    ctrl = dfx.PIDController(rtol=1e-10, atol=1e-10)
+    sol = solve(y0, 2.0, args={"w": w}, adjoint=adjoint, stepsize_controller=ctrl)
+    return sol.ys["x"][-1]
+
+
+def test_forward_mode_derivatives():
+    x0, w = jnp.asarray(0.7), jnp.asarray(1.5)
+    fwd = jax.jacfwd(_final_x, argnums=(0, 1))(x0, w, dfx.ForwardMode())
+    np.testing.assert_allclose(fwd[0], np.cos(3.0), atol=1e-8)
+    np.testing.assert_allclose(fwd[1], -0.7 * 2.0 * np.sin(3.0), atol=1e-7)
+
+
+@pytest.mark.slow
+def test_reverse_mode_derivatives():
+    x0, w = jnp.asarray(0.7), jnp.asarray(1.5)
+    rev = jax.grad(_final_x, argnums=(0, 1))(x0, w, dfx.RecursiveCheckpointAdjoint())
+    np.testing.assert_allclose(rev[0], np.cos(3.0), atol=1e-8)
+    np.testing.assert_allclose(rev[1], -0.7 * 2.0 * np.sin(3.0), atol=1e-7)
+
+
+def test_convergence_order_fixed_steps():
+    # Local error h^(K+1): the global error at order 4 falls as h^4.
+    errs = []
+    dts = [0.2, 0.1, 0.05]
+    for dt in dts:
+        y0 = {"x": jnp.asarray(1.0), "v": jnp.asarray(0.0)}
+        sol = solve(
+            y0,
+            2.0,
+            solver=lagrax.Taylor(order=4),
+            stepsize_controller=dfx.ConstantStepSize(),
+            dt0=dt,
+        )
+        errs.append(abs(float(sol.ys["x"][-1]) - np.cos(4.0)))
+    slope = np.polyfit(np.log(dts), np.log(errs), 1)[0]
+    assert 3.7 < slope < 4.3
+
+
+def test_simulate_double_pendulum_against_dopri8():
+    # Lagrange's equations of a closed-form double pendulum, released from rest.
+    def L(q, qdot, t):
+        T = qdot[0] ** 2 + 0.5 * qdot[1] ** 2 + qdot[0] * qdot[1] * jnp.cos(q[0] - q[1])
+        return T + 2 * 9.81 * jnp.cos(q[0]) + 9.81 * jnp.cos(q[1])
+
+    q0, v0 = jnp.array([0.8, -0.4]), jnp.zeros(2)
+    ts = jnp.linspace(0.0, 2.0, 5)
+    kw = dict(saveat=dfx.SaveAt(ts=ts))
+    ref = lagrax.simulate(
+        L, q0, v0, 0.0, 2.0, solver=dfx.Dopri8(), rtol=1e-13, atol=1e-13, **kw
+    )
+    sol = lagrax.simulate(
+        L, q0, v0, 0.0, 2.0, solver=lagrax.Taylor(order=K), rtol=1e-11, atol=1e-11, **kw
+    )
+    np.testing.assert_allclose(sol.ys[0], ref.ys[0], atol=1e-9)
+    np.testing.assert_allclose(sol.ys[1], ref.ys[1], atol=1e-8)
+
+
+def test_non_ode_term_rejected():
+    term = dfx.ControlTerm(lambda t, y, args: y, dfx.LinearInterpolation(
+        ts=jnp.array([0.0, 1.0]), ys=jnp.array([0.0, 1.0])
+    ))  # fmt: skip
+    with pytest.raises(TypeError, match="ODETerm"):
+        dfx.diffeqsolve(term, lagrax.Taylor(order=K), 0.0, 1.0, 0.1, jnp.asarray(1.0))
+
+
+def test_mass_matrix_solve_recurrence_three_coordinates():
+    # n = 3 takes the marked solve (one factorization of M_0 per step): the series
+    # of y' = F(y) against nested JVPs, y_k = y^(k)(0) / k!, up to order 5.
+    def L(q, qdot, t):
+        s = jnp.sin(q)
+        T = 0.5 * qdot @ qdot + 0.05 * (s @ qdot) ** 2  # M = I + 0.1 s s^T
+        return T - 0.5 * q @ q - 0.1 * q[0] * q[1] * q[2]
+
+    field = lagrax.vector_field(L)
+    q0, v0 = jnp.array([0.4, -0.3, 0.7]), jnp.array([0.2, 0.5, -0.1])
+
+    def F(y):
+        return jnp.concatenate(field(0.0, (y[:3], y[3:]), None))
+
+    from lagrax._taylor.system import System
+
+    system = System(lambda t, ys, p: list(field(t, tuple(ys), None)), 0.0, [q0, v0], [])
+    assert any(node.kind == "solve" for node in system.prog.nodes)
+    coefs = jax.jit(lambda q, v: system.coefficients(4, jnp.zeros(1), [q, v], []))(
+        q0[None], v0[None]
+    )
+    series = np.array([[float(c[k][0]) for c in coefs] for k in range(5)])
+
+    def derivatives(y):
+        g, out = F, []
+        for _ in range(4):
+            out.append(g(y))
+            g = (lambda g: lambda y: jax.jvp(g, (y,), (F(y),))[1])(g)
+        return out
+
+    y = jnp.concatenate([q0, v0])
+    factorial = 1.0
+    for k, d in enumerate(jax.jit(derivatives)(y), start=1):
+        factorial *= k
+        np.testing.assert_allclose(series[k], d / factorial, rtol=1e-12, atol=1e-12)
