@@ -93,10 +93,12 @@ def test_the_public_examples_are_found():
 
 
 def _marks(code):
-    # A batch through the period kernel compiles for 10-40 s of CPU: slow. The
-    # rebuilt-L and gradient paths the recipe shows are tested in the default run
-    # (tests/test_canonical.py, tests/test_gradients.py).
-    return [pytest.mark.slow] if "sweep_periods(" in code else []
+    # A batch through the period kernel or simulate_batch's Taylor loop compiles for
+    # 10-90 s of CPU: slow. The rebuilt-L and gradient paths the recipe shows and the
+    # batched trajectories are tested in the default run (tests/test_canonical.py,
+    # tests/test_gradients.py, tests/test_simulate_batch.py).
+    slow = ("sweep_periods(", "simulate_batch(")
+    return [pytest.mark.slow] if any(s in code for s in slow) else []
 
 
 @pytest.mark.parametrize(

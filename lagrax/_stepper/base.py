@@ -140,7 +140,7 @@ def lane_max(x):
 
 
 def abs_max(x, v):
-    """$\max(|x|, |v|)$ entry by entry, for arrays or pytrees of them."""
+    r"""$\max(|x|, |v|)$ entry by entry, for arrays or pytrees of them."""
     return jax.tree.map(lambda a, b: jnp.maximum(jnp.abs(a), jnp.abs(b)), x, v)
 
 

@@ -300,10 +300,11 @@ def simulate_batch(
     **Example:**
 
     ```python
-    q0 = jax.random.uniform(key, (1024, 2), minval=-1.0, maxval=1.0)
+    L = lagrax.systems.double_pendulum.lagrangian()
+    q0 = jax.random.uniform(jax.random.key(0), (256, 2), minval=-1.0, maxval=1.0)
     sol = lagrax.simulate_batch(L, q0, jnp.zeros_like(q0), 0.0, 10.0,
                                 rtol=1e-12, atol=1e-12)
-    sol.ys[0][:, -1]  # q at t = 10 for every release
+    q_end = sol.ys[0][:, -1]  # q at t = 10, one row per release
     ```
     """
     check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
