@@ -532,6 +532,78 @@ def _row(name, args, ys, ref, seconds, **extra):
     )
 
 
+# ------------------------------------------------------------------- accelerations
+
+
+def work_accelerations(args):
+    """`lagrax.accelerations` inside a user's own vector field, `lagrax.vector_field`
+    and a hand-written closed form, each in one fixed-step Tsit5 solve (dt 0.01, 200
+    steps, 1024 lanes, `jit(vmap)`): medians of interleaved rounds."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import diffrax as dfx
+    import jax.numpy as jnp
+    import numpy as np
+
+    import lagrax
+    from lagrax.systems import double_pendulum, pendulum
+
+    systems = {
+        "pendulum": (
+            pendulum.lagrangian(g=G),
+            lambda q, v: -G * jnp.sin(q),
+            1,
+        ),
+        "double pendulum (particles)": (
+            double_pendulum.lagrangian(g=G),
+            lambda q, v: double_pendulum.acceleration(q, v, g=G),
+            2,
+        ),
+    }
+    rows = []
+    for name, (L, hand, n) in systems.items():
+        fields = {
+            "hand-written": lambda t, y, a, hand=hand: (y[1], hand(*y)),
+            "lagrax.vector_field": lagrax.vector_field(L),
+            "lagrax.accelerations in the user's field": (
+                lambda t, y, a, L=L: (y[1], lagrax.accelerations(L, y[0], y[1], t))
+            ),
+        }
+        rng = np.random.default_rng(0)
+        q0 = jnp.asarray(rng.uniform(-1, 1, (1024, n)))
+        v0 = jnp.zeros_like(q0)
+        fns = {}
+        for label, f in fields.items():
+
+            def solve(q, v, f=f):
+                return dfx.diffeqsolve(
+                    dfx.ODETerm(f), dfx.Tsit5(), 0.0, 2.0, 0.01, (q, v),
+                    stepsize_controller=dfx.ConstantStepSize(), max_steps=256,
+                ).ys  # fmt: skip
+
+            fns[label] = jax.jit(jax.vmap(solve))
+            jax.block_until_ready(fns[label](q0, v0))
+        times = {label: [] for label in fns}
+        for r in range(max(args.repeats, 5)):
+            for label in list(fns)[r % 3 :] + list(fns)[: r % 3]:
+                t = time.perf_counter()
+                jax.block_until_ready(fns[label](q0, v0))
+                times[label].append(time.perf_counter() - t)
+        base = float(np.median(times["hand-written"]))
+        for label, ts in times.items():
+            rows.append(
+                dict(
+                    system=name,
+                    field=label,
+                    median_s=float(np.median(ts)),
+                    vs_hand_written=float(np.median(ts)) / base,
+                )
+            )
+            print(f"{name:28s} {label:42s} {rows[-1]['vs_hand_written']:.2f}x")
+    return dict(rows=rows)
+
+
 # ------------------------------------------------------------------------------ GPU
 
 
@@ -680,6 +752,12 @@ def main():
         help="only lagrax methods whose name contains one of these",
     )
     p.add_argument("--no-heyoka", action="store_true")
+    p.add_argument(
+        "--accelerations",
+        action="store_true",
+        help="only lagrax.accelerations inside a user's solve against vector_field "
+        "and a hand-written EOM (results/trajectories_accelerations.json)",
+    )
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--core", type=int, default=1)
     p.add_argument(
@@ -696,6 +774,7 @@ def main():
             with open(args.reference_file) as fh:
                 args.reference_json = json.dumps(json.load(fh)["ys"])
         fn = dict(
+            accelerations=work_accelerations,
             reference=work_reference,
             heyoka=work_heyoka,
             lagrax=work_lagrax,
@@ -713,6 +792,13 @@ def main():
             extra=["--gpu-sizes", *map(str, args.gpu_sizes)],
         )
         with open(os.path.join(RESULTS, "trajectories_gpu.json"), "w") as fh:
+            json.dump(out, fh, indent=1)
+        return
+    if args.accelerations:
+        out = spawn("accelerations", args, "double_pendulum", "core")
+        for row in out["rows"]:
+            print(f"{row['system']:28s} {row['field']:42s} {row['vs_hand_written']:.2f}x")
+        with open(os.path.join(RESULTS, "trajectories_accelerations.json"), "w") as fh:
             json.dump(out, fh, indent=1)
         return
     suffix = "_quick" if args.quick else ""

@@ -16,7 +16,8 @@ __all__ = ["Taylor"]
 
 
 class Taylor(AbstractTaylorSolver):
-    r"""A Taylor integrator (heyoka's method) for `period` and `sweep_periods`.
+    r"""A Taylor integrator (heyoka's method): a diffrax solver, and the stepper of
+    `period`, `sweep_periods` and `simulate_batch`.
 
     Each step expands the trajectory to order $K$ about the current state (its Taylor
     coefficients by recurrences from the acceleration's jaxpr, one transcendental
@@ -38,8 +39,31 @@ class Taylor(AbstractTaylorSolver):
     where that correction does not settle to round-off, the step is re-taken from
     the same base with the step length as the unknown, as for Runge–Kutta solvers.
 
-    Only for the period kernel (not a diffrax solver). The acceleration's jaxpr must
-    consist of primitives with a recurrence. For one that has none, `Taylor()` raises
+    **As a diffrax solver** (`diffrax.diffeqsolve(term, lagrax.Taylor(), ...)` with
+    any `diffrax.ODETerm` whose vector field is built from primitives with a
+    recurrence, e.g. `lagrax.vector_field(L)`, any pytree state and any number of
+    coordinates; `lagrax.simulate(..., solver=lagrax.Taylor())`): each step expands
+    $y' = f(t, y)$ to order $K$ about its start and evaluates the polynomial at the
+    step the controller proposes. The error estimate is the rule above per entry,
+    $e_i = (|h| \max_{K-3 \le j \le K} |y_{j,i}|^{1/j})^K$, of error order $K$: a
+    `diffrax.PIDController` keeps $e_i \le$ atol + rtol $|y_i|$ and proposes the
+    rule's step for the next (rejecting a step only where the rule's step shrinks
+    faster than its `safety`). Dense output (`SaveAt(ts=...)`, `SaveAt(dense=True)`,
+    `Solution.evaluate`) and `diffrax.Event` root finding read the step's own
+    polynomial. Forward mode (`jax.jvp`, `jax.jacfwd`, `diffrax.ForwardMode`) and
+    reverse mode through `diffrax.RecursiveCheckpointAdjoint` differentiate it;
+    `BacksolveAdjoint` integrates an adjoint vector field whose jaxpr (transposed
+    products) is not guaranteed to have recurrences. For $n \ge 3$ coordinates the
+    mass-matrix solve of `lagrax.vector_field` is expanded with one factorization of
+    $M_0$ per step. A large vector field at a high order makes a large program:
+    `simulate` called outside `jit` and `simulate_batch` compile it with XLA's
+    elemental CPU emitters (the compile option `{"xla_cpu_use_fusion_emitters":
+    False}`), with which it stays one vectorized loop; inside a `jax.jit` of your
+    own, pass that option to your `jit` (XLA's default CPU emitters recompute parts
+    of such a program, measured ~40x slower for the double pendulum at order 12).
+
+    In the period kernel, the acceleration's jaxpr must consist of primitives with a
+    recurrence. For one that has none, `Taylor()` raises
     `NotImplementedError` at the first call, naming the primitive and listing those
     supported, and `Taylor(fallback=diffrax.Dopri8())` (the default solver of
     `sweep_periods`) steps with the fallback instead. The fallback also steps where
@@ -54,8 +78,9 @@ class Taylor(AbstractTaylorSolver):
 
     - `order`: $K$, the degree of the polynomials (default 20: the order heyoka.py
         picks for float64 at its default tolerance; $K \geq 2$).
-    - `max_step`: the longest step in the lane's units of time, $\sqrt{|q_0| /
-        |\ddot q_0|}$ (default 2, a third of a small oscillation's period).
+    - `max_step`: the period kernel's longest step in the lane's units of time,
+        $\sqrt{|q_0| / |\ddot q_0|}$ (default 2, a third of a small oscillation's
+        period); unused by diffrax (its controller's `dtmax`) and `simulate_batch`.
     - `fallback`: `None` (default), or an adaptive explicit Runge–Kutta diffrax
         solver to step with where the acceleration has a primitive without a
         recurrence or a program too large to unroll.
