@@ -15,12 +15,13 @@ from t = 0 to t = 10):
 Error: the largest absolute error of $(q, \dot q)$ at $t = 10$ over all releases,
 against heyoka.py in 80-bit long double at tol 1e-18 (cached, see `--cache`). For
 each accuracy bound (1e-9 and 1e-12) every method runs at the loosest tolerance of
-a decade grid whose error stays under the bound; trajectories/s is the best of
-`--repeats` calls (at least one second of calls) at that tolerance, compile or build
-time is the first call (lagrax: one `jax.jit` compile, tolerances are arrays so the
-tolerance scan does not recompile; heyoka.py: building the integrator, which it does
-per tolerance). Energy drift: $|E(10) - E(0)| / |E(0)|$ per trajectory ($E = T + V$
-in closed form, float64), the largest and the median.
+a half-decade grid (1 and 3 per decade) whose error stays under the bound;
+trajectories/s is the best of `--repeats` calls (at least one second of calls) at
+that tolerance. Compile or build time is the first call (lagrax: one `jax.jit`
+compile, tolerances are arrays so the tolerance scan does not recompile; heyoka.py:
+building the integrator at the chosen tolerance with its code caches off and
+emptied, which it does per tolerance). Energy drift: $|E(10) - E(0)| / |E(0)|$ per
+trajectory ($E = T + V$ in closed form, float64), the largest and the median.
 
 Methods, each group in a fresh worker process:
 
@@ -30,8 +31,11 @@ Methods, each group in a fresh worker process:
   per chunk, as its tutorial does) and plain Python threads each looping its own
   batch integrator over half the chunks.
 - lagrax `simulate` under `jax.jit(jax.vmap(...))` with `diffrax.Tsit5()` (its
-  default) and `diffrax.Dopri8()`, rtol = atol = tol; on the whole machine the
-  batch is split over one JAX CPU device per core with `jax.shard_map`.
+  default), `diffrax.Dopri8()` and `lagrax.Taylor(order=K)` (that `jit` with the
+  compile option `lagrax.Taylor` asks for on a CPU), rtol = atol = tol; on the whole
+  machine the batch is split over one JAX CPU device per core with `jax.shard_map`.
+- `lagrax.simulate_batch` with `lagrax.Taylor(order=K)`: its own compiled loop over
+  refilling lanes (one per device on the whole machine).
 
 "1 core" rows run under `taskset -c 1` (the whole worker process, both libraries);
 "whole machine" rows unpinned. A work-precision chart (seconds per trajectory
@@ -46,6 +50,7 @@ against error, every tolerance of each scan) per system goes to
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
@@ -69,6 +74,7 @@ SYSTEMS = {
 }
 QUICK_COUNT = {"double_pendulum": 256}  # others: 64 releases with --quick
 REFERENCE_TOL = 1e-18
+TAYLOR_ORDERS = dict(simulate=(8, 12, 20), simulate_batch=(12, 16, 20))
 
 
 def _initial(system, quick):
@@ -109,9 +115,10 @@ def _best(fn, repeats, min_seconds=1.0):
 
 
 def _tolerances(bound):
-    """A decade grid, loosest first: bound x 100 down to 1e-15."""
-    exps = range(int(round(-__import__("math").log10(bound))) - 2, 16)
-    return [10.0 ** (-e) for e in exps]
+    """A half-decade grid, loosest first: bound x 100 down to 1e-15 (a decade grid
+    can leave either side's pick a decade short of its loosest passing tolerance)."""
+    first = 2 * (int(round(-math.log10(bound))) - 2)
+    return [float(f"{10.0 ** (-e / 2):.1g}") for e in range(first, 31)]
 
 
 # ----------------------------------------------------------------------- heyoka.py
@@ -179,6 +186,9 @@ def work_heyoka(args):
     n = q0.shape[1]
     y0 = np.concatenate([q0, v0], axis=1)
     B = hy.recommended_simd_size()
+    # Build times are cold: no compiled code from earlier runs (its disk cache) or
+    # from the scan (its memory cache, cleared before each timed build).
+    hy.llvm_state.set_diskcache_enabled(False)
     sys_ = _heyoka_system(args.system)
     chunks = [np.arange(i, min(i + B, len(y0))) for i in range(0, len(y0), B)]
 
@@ -224,6 +234,10 @@ def work_heyoka(args):
         curves.setdefault(f"heyoka.py batch (SIMD {B})", []).extend(points)
         if tol is None:
             continue
+        hy.llvm_state.clear_memcache()
+        t = time.perf_counter()
+        tb = build_batch(tol)
+        build = time.perf_counter() - t
         ys_b, sec_b = _best(lambda: run_batch(tb), args.repeats)
         common = dict(bound=bound, tol=tol, n=len(y0))
         if args.where == "core":
@@ -239,6 +253,7 @@ def work_heyoka(args):
                     **common,
                 )
             )
+            hy.llvm_state.clear_memcache()
             t = time.perf_counter()
             ta = hy.taylor_adaptive(sys_, np.zeros(2 * n), tol=tol)
             build_s = time.perf_counter() - t
@@ -381,6 +396,7 @@ def _lagrax_methods(quick):
                 sol.stats["num_steps"],
             )
 
+        run.taylor = isinstance(solver, lagrax.Taylor)
         return run
 
     def batch(order):
@@ -406,9 +422,14 @@ def _lagrax_methods(quick):
     return {
         "lagrax simulate Tsit5": simulate(dfx.Tsit5()),
         "lagrax simulate Dopri8": simulate(dfx.Dopri8()),
-        "lagrax simulate Taylor-8": simulate(lagrax.Taylor(order=8)),
-        "lagrax simulate_batch Taylor-12": batch(12),
-        "lagrax simulate_batch Taylor-16": batch(16),
+        **{
+            f"lagrax simulate Taylor-{k}": simulate(lagrax.Taylor(order=k))
+            for k in TAYLOR_ORDERS["simulate"]
+        },
+        **{
+            f"lagrax simulate_batch Taylor-{k}": batch(k)
+            for k in TAYLOR_ORDERS["simulate_batch"]
+        },
     }
 
 
@@ -450,6 +471,7 @@ def work_lagrax(args):
         t = time.perf_counter()
         call(1e-9)
         compile_s = time.perf_counter() - t
+        print(f"    {name}: first call {compile_s:.1f} s", file=sys.stderr, flush=True)
 
         def ys_of(out):
             q1, v1, steps = (np.asarray(x) for x in out)
@@ -465,6 +487,11 @@ def work_lagrax(args):
                 err = float(np.max(np.abs(ys - ref))) if np.isfinite(ys).all() else None
                 curves.setdefault(name, []).append(
                     dict(tol=tol, max_error=err, seconds=sec)
+                )
+                print(
+                    f"      tol {tol:.0e}: error {err}, {sec:.2f} s",
+                    file=sys.stderr,
+                    flush=True,
                 )
                 if err is not None and err <= bound:
                     chosen = tol
@@ -508,7 +535,11 @@ def _vmapped(one, L, devices):
             out_specs=P("lanes"),
             check_vma=False,
         )
-    return jax.jit(batched)
+    # As `lagrax.Taylor`'s docstring asks of a jit of one's own on a CPU: XLA's
+    # elemental emitters (its fusion emitters recompute parts of the Taylor program).
+    taylor = getattr(one, "taylor", False) and jax.default_backend() == "cpu"
+    options = {"xla_cpu_use_fusion_emitters": False} if taylor else None
+    return jax.jit(batched, compiler_options=options)
 
 
 def _row(name, args, ys, ref, seconds, **extra):
@@ -625,9 +656,10 @@ def work_gpu(args):
         q0 = jnp.asarray(rng.uniform(-1, 1, (count, 2)))
         v0 = jnp.zeros_like(q0)
         for name, one in methods.items():
-            fn = jax.jit(
-                jax.vmap(lambda q, v, tol, one=one: one(L, q, v, tol), (0, 0, None))
-            )
+            if getattr(one, "batched", False):
+                fn = lambda q, v, tol, one=one: one(L, q, v, tol)
+            else:
+                fn = _vmapped(one, L, jax.devices()[:1])
             t = time.perf_counter()
             jax.block_until_ready(fn(q0, v0, 1e-10))
             compile_s = time.perf_counter() - t
@@ -661,9 +693,10 @@ def spawn(kind, args, system, where, reference=None, extra=()):
     if where == "core":
         cmd = ["taskset", "-c", str(args.core)] + cmd
     t = time.perf_counter()
-    out = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    # The worker's stderr (its progress lines) goes straight through.
+    out = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env=env)
     if out.returncode != 0:
-        print(out.stderr[-3000:], file=sys.stderr)
+        print(f"  ({kind} {system} {where} failed)", file=sys.stderr)
         return None
     print(f"  ({kind} {system} {where}: {time.perf_counter() - t:.0f} s)", flush=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -797,7 +830,9 @@ def main():
     if args.accelerations:
         out = spawn("accelerations", args, "double_pendulum", "core")
         for row in out["rows"]:
-            print(f"{row['system']:28s} {row['field']:42s} {row['vs_hand_written']:.2f}x")
+            print(
+                f"{row['system']:28s} {row['field']:42s} {row['vs_hand_written']:.2f}x"
+            )
         with open(os.path.join(RESULTS, "trajectories_accelerations.json"), "w") as fh:
             json.dump(out, fh, indent=1)
         return
