@@ -34,6 +34,7 @@ from .._checks import (
 from .._custom_types import GeneralizedForce, Lagrangian
 from .._stepper.base import LaneField
 from .._stepper.taylor import TaylorStepper
+from .._taylor.program import _UNROLL_BUDGET
 from .._taylor.solver import Taylor
 from .._taylor.system import System
 from .simulate import ELEMENTAL, simulate
@@ -56,7 +57,13 @@ class SystemTaylorStepper(TaylorStepper):
     def coefficients(self, field, s, x, v):
         K = self.order
         stacked = [jnp.stack(x, axis=1), jnp.stack(v, axis=1)]
-        coefs = self.system.coefficients(K, s, stacked, [field.params], trig=True)
+        # A straight-line program of over ~2000 equations (K per node of the
+        # system's program) stops being one fused loop: XLA splits it, compiles for
+        # minutes and steps several times slower than the loop over the orders.
+        unrolled = K * len(self.system.prog.nodes) <= _UNROLL_BUDGET
+        coefs = self.system.coefficients(
+            K, s, stacked, [field.params], unrolled=unrolled, trig=True
+        )
         n = len(x)
         # Per order, the state's columns as a tuple (`x`, `v` are tuples of (W,)
         # columns): stacked into (W, n) arrays, each order would be a fusion of its
