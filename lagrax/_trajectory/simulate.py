@@ -257,7 +257,7 @@ def simulate(
         failed = (sol.result != dfx.RESULTS.successful) & (
             sol.result != dfx.RESULTS.event_occurred
         )
-        if eager and is_concrete(sol.result._value):
+        if eager and is_concrete(failed):
             if bool(jnp.any(failed)):
                 raise RuntimeError(
                     "lagrax.simulate failed: "
