@@ -32,11 +32,12 @@ from .._checks import (
     positive_scalar,
 )
 from .._custom_types import GeneralizedForce, Lagrangian
+from .._jaxpr.fusion import ELEMENTAL
 from .._stepper.base import LaneField
 from .._stepper.taylor import TaylorStepper
 from .._taylor.solver import Taylor
 from .._taylor.system import System
-from .simulate import ELEMENTAL, simulate
+from .simulate import simulate
 from .term import _LagrangeVectorField
 
 
