@@ -122,7 +122,8 @@ def sweep_periods(
         it slower. An eager `jax.grad` compiles the Taylor step's derivative with
         XLA's elemental CPU emitters; in a `jax.jit` of your own around it, pass
         `compiler_options={"xla_cpu_use_fusion_emitters": False}` to that `jit`
-        (the default emitters run that derivative tens of times slower on a CPU). Inside the kernel, float64 `sin` and `cos` in the equations are
+        (the default emitters run that derivative tens of times slower on a CPU).
+        Inside the kernel, float64 `sin` and `cos` in the equations are
         computed by lagrax's own vectorized versions (within 1 ulp, several times
         faster than the C library's on a CPU) in every Runge–Kutta stage and Taylor
         step; their argument must stay within
