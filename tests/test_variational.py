@@ -346,6 +346,9 @@ def test_gauss_legendre_beats_midpoint_at_same_step():
     assert e6 < 1e-2 * e4 < 1e-4 * e2, (e2, e4, e6)
 
 
+# 1000 periods of each; the no-drift of the variational family is checked every time
+# by test_energy_bounded_no_drift_1e3_periods (the midpoint rule).
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("cls", "h_per_period"),
     [
@@ -372,8 +375,9 @@ def test_gauss_legendre_noether_momentum_exact(cls):
     y0 = (jnp.array([1.0, 0.0]), jnp.array([0.2, 1.3]))
     saveat = dfx.SaveAt(steps=True, solver_state=True)
     nsteps = 1000
-    sol = _solve(L, y0, nsteps * 0.2, 0.2, solver=cls(), saveat=saveat,
-                 max_steps=nsteps)
+    sol = _solve(
+        L, y0, nsteps * 0.2, 0.2, solver=cls(), saveat=saveat, max_steps=nsteps
+    )
     assert sol.result == dfx.RESULTS.successful
     qs, qdots = sol.ys
     p_phi = jax.vmap(lambda q, v: lagrax.momenta(L, q, v, 0.0))(qs, qdots)[:, 1]
@@ -399,6 +403,8 @@ def test_gauss_legendre_time_reversible(cls):
     assert not tree_allclose(y1, y0, rtol=0, atol=1e-2)
 
 
+# Gauss-Legendre under jit and vmap runs every time in the per-lane failures test.
+@pytest.mark.slow
 @pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_vmap_jit_match_a_python_loop(cls):
     ts = jnp.linspace(0.0, 3.0, 7)
@@ -414,16 +420,17 @@ def test_gauss_legendre_vmap_jit_match_a_python_loop(cls):
     assert np.all(np.asarray(sols.result == dfx.RESULTS.successful))
     for i, q0 in enumerate(q0s):
         assert tree_allclose(
-            jax.tree_util.tree_map(lambda x: x[i], sols.ys), one(q0).ys,
-            rtol=1e-12, atol=1e-12,
+            jax.tree_util.tree_map(lambda x: x[i], sols.ys),
+            one(q0).ys,
+            rtol=1e-12,
+            atol=1e-12,
         )
 
 
 @pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_failures_per_lane(cls):
     y0 = (jnp.array([1.0]), jnp.array([0.0]))
-    sol = _solve(PENDULUM, y0, 1.0, 0.1, solver=cls(root_find_max_steps=1),
-                 throw=False)
+    sol = _solve(PENDULUM, y0, 1.0, 0.1, solver=cls(root_find_max_steps=1), throw=False)
     assert sol.result == dfx.RESULTS.nonlinear_max_steps_reached
 
     def L(q, qdot, t):  # NaN for q < 0
@@ -468,7 +475,10 @@ def test_root_finder_argument():
     y0 = (jnp.array([2.5]), jnp.array([0.0]))
     default = _solve(PENDULUM, y0, 2.0, 0.1)
     tight = _solve(
-        PENDULUM, y0, 2.0, 0.1,
+        PENDULUM,
+        y0,
+        2.0,
+        0.1,
         solver=lagrax.VariationalMidpoint(
             root_finder=optx.Newton(rtol=1e-12, atol=1e-12)
         ),
@@ -478,7 +488,10 @@ def test_root_finder_argument():
     # A root finder given as an argument is the one used: chord iterations (Jacobian
     # frozen) with a loose tolerance give a different, still converged, answer.
     loose = _solve(
-        PENDULUM, y0, 2.0, 0.1,
+        PENDULUM,
+        y0,
+        2.0,
+        0.1,
         solver=lagrax.GaussLegendre4(root_finder=optx.Chord(rtol=1e-3, atol=1e-3)),
         saveat=dfx.SaveAt(t1=True, solver_state=True),
     )
