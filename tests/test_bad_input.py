@@ -699,7 +699,9 @@ def test_degenerate_lagrangian_eager_error(key, entry):
             lagrax.simulate(L, q, qdot, 0.0, 1.0)
 
 
-@pytest.mark.parametrize("L", [_linear_in_qdot, _no_velocity])
+@pytest.mark.parametrize(
+    "L", [_linear_in_qdot, pytest.param(_no_velocity, marks=pytest.mark.slow)]
+)
 def test_degenerate_lagrangian_period_eager_error(L):
     with pytest.raises(ValueError, match="`q0`.*singular_mass"):
         lagrax.period(L, 0.5)

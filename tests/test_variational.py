@@ -369,6 +369,8 @@ def test_gauss_legendre_energy_bounded_no_drift(cls, h_per_period):
     assert rk[-1] > 5 * rk[0], rk
 
 
+# The midpoint rule's exact Noether momentum runs every time.
+@pytest.mark.slow
 @pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_noether_momentum_exact(cls):
     L = spherical_pendulum()
