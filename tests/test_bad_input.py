@@ -1394,8 +1394,9 @@ def test_indexing_within_range_is_fine():
 
 def test_index_check_adds_nothing_to_the_computation():
     checked = jax.make_jaxpr(lambda q, v: lagrax.accelerations(PENDULUM, q, v))(Q1, V1)
+    # Traced, `accelerations` runs the equations' program inline (no nested jit).
     core = jax.make_jaxpr(
-        lambda q, v: lagrax._eom.mechanics._accelerations_jit(
+        lambda q, v: lagrax._eom.mechanics._accelerations(
             PENDULUM, q, v, jnp.zeros(()), None
         )[0]
     )(Q1, V1)

@@ -181,6 +181,9 @@ def test_asymmetric_well_to_099_of_its_hump(solver):
     assert true.max() <= 1e-12
 
 
+# The quadrature against scipy on the same well runs every time in
+# tests/test_quadrature.py.
+@pytest.mark.slow
 def test_quadrature_oracle_near_the_hump():
     # The quadrature oracle against the 40-digit period: 1e-14 away from the hump,
     # 1.8e-13 at 0.99 of its height (measured), where the sweep stays at 1e-14.

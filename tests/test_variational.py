@@ -451,6 +451,8 @@ def test_gauss_legendre_failures_per_lane(cls):
     assert np.all(np.isfinite(np.asarray(sols.ys[0][2])))
 
 
+# The midpoint rule's force and time dependence converge every time.
+@pytest.mark.slow
 @pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_force_and_time_dependence_converge(cls):
     c = 0.3
