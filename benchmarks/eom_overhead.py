@@ -283,7 +283,7 @@ def fixed_variants(system, dt, nsteps):
                 stepsize_controller=dfx.ConstantStepSize(),
                 max_steps=max_steps,
             )
-            return sol.ys, sol.stats["num_steps"], sol.result._value
+            return sol.ys, sol.stats["num_steps"], sol.result != dfx.RESULTS.successful
 
         return solve
 
@@ -300,7 +300,7 @@ def fixed_variants(system, dt, nsteps):
             max_steps=max_steps,
             throw=False,
         )
-        return sol.ys, sol.stats["num_steps"], sol.result._value
+        return sol.ys, sol.stats["num_steps"], sol.result != dfx.RESULTS.successful
 
     variants = {name: through_diffrax(f) for name, f in system["hand"].items()}
     variants["lagrax"] = through_diffrax(lagrax.vector_field(system["L"]))
@@ -334,7 +334,7 @@ def adaptive_variants(system, t1, rtol, max_steps):
                 max_steps=max_steps,
                 throw=False,
             )
-            return sol.ys, sol.stats["num_steps"], sol.result._value
+            return sol.ys, sol.stats["num_steps"], sol.result != dfx.RESULTS.successful
 
         return solve
 
@@ -351,7 +351,7 @@ def adaptive_variants(system, t1, rtol, max_steps):
             max_steps=max_steps,
             throw=False,
         )
-        return sol.ys, sol.stats["num_steps"], sol.result._value
+        return sol.ys, sol.stats["num_steps"], sol.result != dfx.RESULTS.successful
 
     variants = {name: through_diffrax(f) for name, f in system["hand"].items()}
     variants["lagrax"] = through_diffrax(lagrax.vector_field(system["L"]))
@@ -415,7 +415,7 @@ def summarize(samples, compile_s, outputs, reference="hand"):
             max_steps=int(steps.max()),
             lanes_with_other_step_count=int(np.sum(steps != ref_steps)),
             ratio_per_step=(median / steps.sum()) / (ref_median / ref_steps.sum()),
-            failed_lanes=int(np.sum(np.asarray(result) != 0)),
+            failed_lanes=int(np.sum(np.asarray(result))),
             max_abs_diff_from_hand=diff,
         )
     return rows

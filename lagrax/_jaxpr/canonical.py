@@ -114,6 +114,10 @@ def canonical_lagrangian(L: Callable, dtype) -> tuple[CanonicalLagrangian, list]
     constants, which are `consts` (module docstring). The float array fields of a
     pytree `L` (an `eqx.Module`) come first in `consts`."""
     dtype = np.dtype(dtype)
+    # The one private JAX read in the library: whether any transformation is active
+    # (a memoized `consts` could otherwise hold a tracer of an enclosing trace, which
+    # `L`'s closure may capture invisibly). JAX has no public query; where it is gone
+    # the memo is skipped and `L` is traced per call, which is only slower.
     clean = getattr(jax._src.core, "trace_state_clean", None)
     clean = clean is not None and clean()
     if clean:

@@ -17,6 +17,15 @@ import jax.numpy as jnp
 import numpy as np
 
 
+# XLA's CPU fusion emitters (its default) cut a large fused Taylor step into
+# functions at values with several readers and recompute them per caller; its
+# elemental emitters keep one vectorized loop (the factors measured are in
+# benchmarks/README.md: tens to hundreds of times for a Taylor trajectory step and a
+# sweep's forward-mode derivative). A compile option of lagrax's own programs, not a
+# global flag: inside a caller's `jit`, the caller's options apply.
+ELEMENTAL = {"xla_cpu_use_fusion_emitters": False}
+
+
 _STATE = threading.local()
 
 

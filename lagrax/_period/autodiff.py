@@ -24,10 +24,18 @@ def periods_diff(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol):
 
 def _periods_jvp(L, m, devices, primals, tangents):
     q0, consts, rtol, atol, t_max, energy_tol = primals
-    dq0, dconsts = tangents[0], tangents[1]
-    periods_of = lambda q0, consts: periods(
-        L, m, devices, q0, consts, rtol, atol, t_max, energy_tol
+    periods_of = lambda q0, consts: (
+        periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol),
+        None,
     )
+    (out, _), dT = forward_mode(periods_of, q0, consts, tangents[0], tangents[1])
+    return out, tangents_of(out, dT)
+
+
+def forward_mode(periods_of, q0, consts, dq0, dconsts):
+    """`(periods_of(q0, consts), dT)`: the periods' tangent along `(dq0, dconsts)`
+    (symbolic zeros for the inputs not differentiated), by one forward pass per
+    direction (`_directions`). `periods_of(q0, consts) -> (Periods, aux)`."""
     leaves, treedef = jax.tree.flatten(consts)
     dleaves = treedef.flatten_up_to(dconsts)
     inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in leaves]
@@ -35,7 +43,7 @@ def _periods_jvp(L, m, devices, primals, tangents):
     directions = _directions(q0, dq0, leaves, wanted)
     if not directions:  # (every tangent a symbolic zero)
         out = periods_of(q0, consts)
-        return out, _tangents(out, jnp.zeros_like(out.periods))
+        return out, jnp.zeros_like(out[0].periods)
     dq_dirs = jnp.stack([d[0] for d in directions])
     dc_dirs = [jnp.stack([d[1][k] for d in directions]) for k in range(len(leaves))]
 
@@ -45,13 +53,13 @@ def _periods_jvp(L, m, devices, primals, tangents):
             for c, x, ok in zip(dc, leaves, inexact)
         ]
         out, dout = jax.jvp(periods_of, (q0, consts), (dq, treedef.unflatten(dc)))
-        return out, dout.periods
+        return out, dout[0].periods
 
     # The primal outputs come from the same forward pass (unbatched over the
     # directions): one copy of the sweep in the compiled program, not two.
     out, jac = jax.vmap(tangent, out_axes=(None, 0))(dq_dirs, dc_dirs)  # (dirs, n)
     k = 0
-    dT = jnp.zeros_like(out.periods)
+    dT = jnp.zeros_like(out[0].periods)
     if not _is_zero(dq0):
         dT, k = jac[0] * dq0, 1
     for x, dx, ok in zip(leaves, dleaves, wanted):
@@ -60,7 +68,7 @@ def _periods_jvp(L, m, devices, primals, tangents):
         size = int(np.size(x))
         dT = dT + jnp.tensordot(jnp.reshape(dx, (-1,)), jac[k : k + size], axes=1)
         k += size
-    return out, _tangents(out, dT)
+    return out, dT
 
 
 def _directions(q0, dq0, leaves, wanted):
@@ -83,7 +91,7 @@ def _directions(q0, dq0, leaves, wanted):
     return directions
 
 
-def _tangents(out: Periods, dT) -> Periods:
+def tangents_of(out: Periods, dT) -> Periods:
     """The tangents of `periods`' outputs: `dT` for the periods, none for the rest."""
     int_tangent = lambda y: np.zeros(np.shape(y), jax.dtypes.float0)
     return Periods(

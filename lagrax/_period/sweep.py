@@ -11,12 +11,19 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._checks import as_real_array, check_callable, check_devices, positive_int
+from .._checks import (
+    as_real_array,
+    check_callable,
+    check_devices,
+    is_concrete,
+    positive_int,
+)
 from .._jaxpr.canonical import canonical_lagrangian
+from .._jaxpr.fusion import ELEMENTAL
 from .._results import status_message, SUCCESS
 from .._taylor.solver import Taylor
 from . import executables
-from .autodiff import periods_diff
+from .autodiff import forward_mode, periods_diff, tangents_of
 from .device import Periods
 from .methods import Method
 from .options import check_options
@@ -112,7 +119,11 @@ def sweep_periods(
     - `solver`: default `Taylor(fallback=Dopri8())` (above); any solver `period`
         takes. For a sweep to be differentiated, `solver=diffrax.Dopri8()` compiles
         its derivative faster (about half the time of the Taylor step's) and runs
-        it slower. Inside the kernel, float64 `sin` and `cos` in the equations are
+        it slower. An eager `jax.grad` compiles the Taylor step's derivative with
+        XLA's elemental CPU emitters; in a `jax.jit` of your own around it, pass
+        `compiler_options={"xla_cpu_use_fusion_emitters": False}` to that `jit`
+        (the default emitters run that derivative tens of times slower on a CPU).
+        Inside the kernel, float64 `sin` and `cos` in the equations are
         computed by lagrax's own vectorized versions (within 1 ulp, several times
         faster than the C library's on a CPU) in every Runge–Kutta stage and Taylor
         step; their argument must stay within
@@ -270,6 +281,7 @@ def _in_pieces(run, q0, order, size, progress) -> Periods:
     )
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
 def _sweep_call(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol):
     """`periods_diff` as one compiled call: one dispatch instead of a dozen (their
     Python and dispatch cost as much as a small sweep). The lanes run in the order
@@ -277,16 +289,37 @@ def _sweep_call(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol)
     return _sweep_jit(L, m, devices)(q0, order, consts, rtol, atol, t_max, energy_tol)
 
 
+def _sweep_call_jvp(L, m, devices, primals, tangents):
+    """Forward mode as `periods_diff`'s, through one compiled call of its own. Where
+    that call is the program that runs (an eager `jax.grad`, `jvp`, `jacfwd`: the
+    values are concrete), it compiles with XLA's elemental CPU emitters: the fusion
+    emitters recompute parts of the Taylor step's tangent program (`ELEMENTAL`). The
+    forward sweep keeps the fusion emitters, which run it faster."""
+    q0, order, consts, *rest = primals
+    elemental = is_concrete(q0, consts) and devices[0].platform == "cpu"
+    jitted = _sweep_jit(L, m, devices, elemental)
+    run = lambda q0, consts: jitted(q0, order, consts, *rest)
+    (out, useful), dT = forward_mode(run, q0, consts, tangents[0], tangents[2])
+    no_tangent = np.zeros(np.shape(useful), jax.dtypes.float0)
+    return (out, useful), (tangents_of(out, dT), no_tangent)
+
+
+_sweep_call.defjvp(_sweep_call_jvp, symbolic_zeros=True)
+
+
 # The structure of `_sweep_body`'s outputs.
 _OUT_TREE = jax.tree.structure((Periods(*[0] * 5), 0))
 
 
 @functools.lru_cache(maxsize=64)
-def _sweep_jit(L, m, devices):
+def _sweep_jit(L, m, devices, elemental=False):
     """`_sweep_body` compiled for one Lagrangian, method and device set: a plain
     `jax.jit` (its C++ dispatch), not `eqx.filter_jit`, whose Python-side flattening
     and hashing of the static arguments cost a noticeable part of a sweep."""
-    return jax.jit(functools.partial(_sweep_body, L, m, devices))
+    options = ELEMENTAL if elemental else None
+    return jax.jit(
+        functools.partial(_sweep_body, L, m, devices), compiler_options=options
+    )
 
 
 def _sweep_body(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol):

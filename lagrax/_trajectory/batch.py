@@ -32,11 +32,12 @@ from .._checks import (
     positive_scalar,
 )
 from .._custom_types import GeneralizedForce, Lagrangian
+from .._jaxpr.fusion import ELEMENTAL
 from .._stepper.base import LaneField
 from .._stepper.taylor import TaylorStepper
 from .._taylor.solver import Taylor
 from .._taylor.system import System
-from .simulate import ELEMENTAL, simulate
+from .simulate import simulate
 from .term import _LagrangeVectorField
 
 
@@ -364,20 +365,14 @@ def simulate_batch(
         times.append(jnp.broadcast_to(ts_arr, (B, ts_arr.shape[0])))
     if save_t1:
         times.append(tend[:, None])
-    value = lambda r: r._value  # (an enumeration item's int: `where` is scalar-only)
-    result = eqx.tree_at(
-        value,
-        dfx.RESULTS.successful,
-        jnp.where(
-            code == _DONE,
-            value(dfx.RESULTS.successful),
-            jnp.where(
-                code == _MAX_STEPS,
-                value(dfx.RESULTS.max_steps_reached),
-                value(dfx.RESULTS.nonfinite),
-            ),
-        ),
+    R = dfx.RESULTS
+    # Per release, by the enumeration's public (scalar) `where`, mapped over lanes.
+    outcome = lambda c: R.where(
+        c == _DONE,
+        R.successful,
+        R.where(c == _MAX_STEPS, R.max_steps_reached, R.nonfinite),
     )
+    result = jax.vmap(outcome)(code)
     ok = (code == _DONE)[:, None, None]
     sol = dfx.Solution(
         t0=t0,
@@ -423,7 +418,7 @@ def _raise_if_failed(sol, throw):
     failed = (sol.result != dfx.RESULTS.successful) & (
         sol.result != dfx.RESULTS.event_occurred
     )
-    if is_concrete(sol.result._value):
+    if is_concrete(failed):
         count = int(jnp.sum(failed))
         if count:
             raise RuntimeError(

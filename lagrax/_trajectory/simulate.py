@@ -21,17 +21,9 @@ from .._checks import (
 )
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
 from .._eom.mechanics import _accelerations_jit
+from .._jaxpr.fusion import ELEMENTAL
 from .._taylor.solver import Taylor
 from .term import _LagrangeVectorField, LagrangianTerm
-
-
-# XLA's CPU fusion emitters (its default) cut a large fused Taylor step into
-# functions at values with several readers and recompute them per caller: the
-# double pendulum's order-12 step ran ~40x slower (a chain of three links did not
-# compile in minutes) than with its elemental emitters, which keep one vectorized
-# loop (one core, measured). A compile option of lagrax's own programs, not a
-# global flag: inside a caller's `jit`, the caller's options apply.
-ELEMENTAL = {"xla_cpu_use_fusion_emitters": False}
 
 
 def elemental(fn):
@@ -257,7 +249,7 @@ def simulate(
         failed = (sol.result != dfx.RESULTS.successful) & (
             sol.result != dfx.RESULTS.event_occurred
         )
-        if eager and is_concrete(sol.result._value):
+        if eager and is_concrete(failed):
             if bool(jnp.any(failed)):
                 raise RuntimeError(
                     "lagrax.simulate failed: "
