@@ -285,6 +285,8 @@ def test_user_module_by_attr_and_by_path_with_and_without_param(
     )
 
 
+# `--reference quadrature` runs every time on a built-in system below.
+@pytest.mark.slow
 def test_quadrature_reference_agrees_with_the_exact_period(
     capsys, user_module, tmp_path
 ):
@@ -341,6 +343,8 @@ def test_failures_exit_1_and_are_named(capsys, tmp_path, user_module):
     assert "1 amplitudes failed" in err and "does not oscillate" in err
 
 
+# Interrupted and killed sweeps resume every time in tests/test_faults.py.
+@pytest.mark.slow
 def test_interrupted_sweep_leaves_no_file_and_resumes(
     capsys, monkeypatch, tmp_path, umask_022
 ):

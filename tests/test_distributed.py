@@ -99,6 +99,9 @@ def finish(proc, timeout=HANG):
     return proc.returncode, out, err
 
 
+# Three processes; the command line's distributed run below checks two processes'
+# results every time, and tests/test_sharding.py two devices against one bit for bit.
+@pytest.mark.slow
 def test_two_processes_each_get_the_one_process_result_bit_for_bit(tmp_path):
     port = free_port()
     files = [tmp_path / f"p{i}.npz" for i in range(2)]
@@ -158,9 +161,10 @@ FOREVER = textwrap.dedent(
 )
 
 
-@pytest.mark.parametrize(
-    "victim", [1, pytest.param(0, marks=pytest.mark.slow, id="coordinator")]
-)
+# Two processes that sweep until one is killed: JAX's heartbeat is what ends the
+# survivor; the processes' agreement runs every time in the test above.
+@pytest.mark.slow
+@pytest.mark.parametrize("victim", [1, pytest.param(0, id="coordinator")])
 def test_a_killed_process_makes_the_other_exit_with_an_error(victim):
     port = free_port()
     procs = [start(FOREVER, i, port) for i in range(2)]
@@ -175,8 +179,10 @@ def test_a_killed_process_makes_the_other_exit_with_an_error(victim):
     survivor = procs[1 - victim]
     rc, _, err = finish(survivor, timeout=120)  # heartbeat timeout 5 s
     assert rc != 0
-    assert "heartbeat" in err or "another task died" in err or "unavailable" in (
-        err.lower()
+    assert (
+        "heartbeat" in err
+        or "another task died" in err
+        or "unavailable" in (err.lower())
     ), err[-3000:]
 
 

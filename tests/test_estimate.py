@@ -164,7 +164,14 @@ def _well_period(x0):
         )
 
 
-@solvers
+@pytest.mark.parametrize(
+    "solver",
+    [
+        pytest.param(SOLVERS[0], id="taylor"),
+        # Dopri8's estimate near a separatrix: every time in the pendulum's tests.
+        pytest.param(SOLVERS[1], id="dopri8", marks=pytest.mark.slow),
+    ],
+)
 def test_asymmetric_well_to_099_of_its_hump(solver):
     q0 = _hump_releases(128)
     exact = np.array([_well_period(x) for x in np.asarray(q0)])
@@ -174,6 +181,9 @@ def test_asymmetric_well_to_099_of_its_hump(solver):
     assert true.max() <= 1e-12
 
 
+# The quadrature against scipy on the same well runs every time in
+# tests/test_quadrature.py.
+@pytest.mark.slow
 def test_quadrature_oracle_near_the_hump():
     # The quadrature oracle against the 40-digit period: 1e-14 away from the hump,
     # 1.8e-13 at 0.99 of its height (measured), where the sweep stays at 1e-14.
@@ -294,32 +304,45 @@ def test_an_undefined_rounding_band_is_not_a_nonfinite_release():
     assert list(np.asarray(checked.status)) == [SUCCESS] + [TOLERANCE_NOT_MET] * 2
 
 
+def _quartic(q, qd, t):
+    return 0.5 * qd[0] ** 2 - 0.25 * q[0] ** 4
+
+
+def _quartic_period(a):
+    from scipy.special import gamma
+
+    return gamma(0.25) ** 2 / np.sqrt(np.pi) / np.abs(np.asarray(a))
+
+
 def test_a_well_flat_at_its_bottom():
     # V = q^4 / 4: the curvature vanishes at the bottom, where q̈ then has a triple
     # zero in time and the point of maximum speed cannot be located. "matched" meets
     # at the last accepted state before it instead (any point of the first leg will
     # do); "quarter" needs that point itself and reports the failure.
-    quartic = lambda q, qd, t: 0.5 * qd[0] ** 2 - 0.25 * q[0] ** 4
     a = jnp.array([0.1, 0.5, 1.0, 2.0, -1.5])
-    from scipy.special import gamma
-
-    exact = gamma(0.25) ** 2 / np.sqrt(np.pi) / np.abs(np.asarray(a))
-    res = lagrax.sweep_periods(quartic, a)
+    exact = _quartic_period(a)
+    res = lagrax.sweep_periods(_quartic, a)
     assert np.all(np.asarray(res.status) == SUCCESS)
     true = _check_bound(res, exact)
     assert true.max() <= 1e-12
-    quarter = lagrax.sweep_periods(quartic, a, method="quarter")
+    quarter = lagrax.sweep_periods(_quartic, a, method="quarter")
     assert not np.any(np.asarray(quarter.ok))
+
+
+@pytest.mark.slow  # forward mode through the kernel: its compilation is the cost
+def test_a_well_flat_at_its_bottom_differentiated():
     # dT/da = -T/a through the meeting point that is a state at a time, not an event.
+    a = jnp.array([0.1, 0.5, 1.0])
+    exact = _quartic_period(a)
     jac = jax.jacfwd(
         lambda a: (
             lagrax.sweep_periods(
-                quartic, a, solver=dfx.Dopri8(), error_estimate=False
+                _quartic, a, solver=dfx.Dopri8(), error_estimate=False
             ).periods
         )
-    )(a[:3])
+    )(a)
     np.testing.assert_allclose(
-        np.diag(np.asarray(jac)), -exact[:3] / np.asarray(a[:3]), rtol=1e-10
+        np.diag(np.asarray(jac)), -exact / np.asarray(a), rtol=1e-10
     )
 
 

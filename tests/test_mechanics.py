@@ -228,7 +228,7 @@ def test_particle_double_pendulum_matches_hand_derivation(key):
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("n", [1, 2])
+@pytest.mark.parametrize("n", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_scalarized_equals_array_evaluation(key, n):
     from lagrax._eom.mechanics import _accelerations, _lagrange_terms, _solve_definite
     from lagrax._jaxpr.scalarize import _cost

@@ -10,10 +10,15 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
 NOTEBOOKS = sorted((pathlib.Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
-# The two longest at small size (40-50 s each on the CI's 2 cores, mostly compiling
-# many sweep configurations) run with `-m slow`; the tautochrone notebook (the
-# gradient through the sweep) and the two tutorials run every time.
-_SLOW = {"speed_vs_accuracy", "isochronism"}
+# Each notebook compiles many sweep configurations even at small size: the first
+# tutorial runs every time, the others with `-m slow` (the gradient through the sweep
+# that the tautochrone notebook uses is checked every time in tests/test_gradients.py).
+_SLOW = {
+    "speed_vs_accuracy",
+    "isochronism",
+    "design_a_tautochrone",
+    "particles_and_constraints",
+}
 _CASES = [
     pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if p.stem in _SLOW else [])
     for p in NOTEBOOKS

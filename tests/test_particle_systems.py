@@ -333,6 +333,8 @@ def test_energy_balance_double_pendulum_with_drag_on_both_bobs():
 # ---------------------------------------------------------------- exact references
 
 
+# Counted every time on smaller systems in tests/test_particles.py.
+@pytest.mark.slow
 def test_degrees_of_freedom_of_the_textbook_examples():
     R, l = 1.5, 1.0
     q_sphere, q_arm = jnp.array([0.7, 0.2]), jnp.array([0.2])

@@ -195,6 +195,8 @@ def test_failed_lane_does_not_change_the_others():
     assert list(np.asarray(spoiled.status)[150:152]) == [7, 1]
 
 
+# Chunk sizes and orders, failures included, run every time in tests/test_faults.py.
+@pytest.mark.slow
 def test_chunk_size_and_order_independence():
     a = jax.random.uniform(jax.random.key(0), (200,), minval=0.1, maxval=3.0)
     big = lagrax.sweep_periods(PENDULUM, a, method="quarter")

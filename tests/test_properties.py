@@ -9,6 +9,7 @@ import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import given, settings, strategies as st
 
 import lagrax
@@ -199,6 +200,8 @@ _final_one = jax.jit(_final)
 _final_batch = jax.jit(jax.vmap(_final, in_axes=(None, None, None, 0, 0)))
 
 
+# simulate batched against a loop runs every time in tests/test_simulate.py.
+@pytest.mark.slow
 @settings(max_examples=5)
 @given(seed=seeds)
 def test_vmap_equals_loop(seed):

@@ -3,6 +3,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 
 SCRIPT = textwrap.dedent(
     """
@@ -41,14 +43,44 @@ SCRIPT = textwrap.dedent(
 )
 
 
-def test_sharded_over_four_cpu_devices_matches_one_device():
+# Every lane on one device against two: the default method's two passes per device
+# (the second compacted within each device), with 7 lanes so that one pads, and a
+# failing lane; the four-device case with gradients is the slow version.
+SMALL = textwrap.dedent(
+    """
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    import lagrax
+    from lagrax.systems import pendulum
+    assert len(jax.devices()) == 2, jax.devices()
+    L = pendulum.lagrangian()
+    b = jnp.array([0.05, 0.7, 1.4, jnp.nan, 2.1, 2.8, 3.0])
+    # rtol 1e-15: the bound cannot vouch for every lane, so the second pass runs.
+    tol = dict(rtol=1e-15, atol=1e-15)
+    one = lagrax.sweep_periods(L, b, chunk_size=2, devices=jax.devices()[:1], **tol)
+    two = lagrax.sweep_periods(L, b, chunk_size=2, **tol)
+    assert two.num_devices == 2 and one.num_devices == 1
+    for k in ("periods", "status", "num_steps"):
+        np.testing.assert_array_equal(np.asarray(getattr(two, k)),
+                                      np.asarray(getattr(one, k)), err_msg=k)
+    ok = np.arange(7) != 3
+    assert int(one.status[3]) != 0 and np.all(np.asarray(one.status)[ok] == 0)
+    np.testing.assert_allclose(np.asarray(two.periods)[ok],
+                               pendulum.pendulum_period(b[ok]), rtol=1e-12)
+    np.testing.assert_allclose(two.error_estimate, one.error_estimate, rtol=1e-12)
+    print("OK")
+    """
+)
+
+
+def _run(script, devices):
     env = dict(os.environ)
     env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+        env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}"
     ).strip()
     env["JAX_PLATFORMS"] = "cpu"
     proc = subprocess.run(
-        [sys.executable, "-c", SCRIPT],
+        [sys.executable, "-c", script],
         env=env,
         capture_output=True,
         text=True,
@@ -56,3 +88,12 @@ def test_sharded_over_four_cpu_devices_matches_one_device():
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "OK" in proc.stdout
+
+
+def test_sharded_over_two_cpu_devices_matches_one_device():
+    _run(SMALL, 2)
+
+
+@pytest.mark.slow  # several configurations, and reverse mode through the sweep
+def test_sharded_over_four_cpu_devices_matches_one_device():
+    _run(SCRIPT, 4)

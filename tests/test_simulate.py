@@ -34,6 +34,9 @@ def test_energy_conserved_pendulum():
     assert np.min(qs) < -2.4
 
 
+# A configuration-dependent mass matrix's energy is checked every time in
+# tests/test_properties.py.
+@pytest.mark.slow
 def test_energy_conserved_double_pendulum_like_coupled_system():
     # Two coupled coordinates with a configuration-dependent mass matrix.
     def L(q, qdot, t):

@@ -93,6 +93,9 @@ def on_one_arch(theta):
     return bool(np.all(np.isfinite(theta) & (theta >= 0) & (theta <= 2 * np.pi)))
 
 
+# The cusp as a status and the u-form regular at it run every time in
+# tests/test_period.py and tests/test_transform.py.
+@pytest.mark.slow
 def test_cycloid_near_cusp_failure_is_detected_and_u_form_cures_it():
     t1 = 4 * np.pi  # one period for every amplitude: exact final state = start
     ts = jnp.linspace(0.0, t1, 101)

@@ -115,6 +115,8 @@ def test_convergence_order_fixed_steps():
     assert 3.7 < slope < 4.3
 
 
+# Taylor() on two coordinates runs every time in the three-coordinate test below.
+@pytest.mark.slow
 def test_simulate_double_pendulum_against_dopri8():
     # Lagrange's equations of a closed-form double pendulum, released from rest.
     def L(q, qdot, t):

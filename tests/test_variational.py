@@ -292,6 +292,12 @@ def test_bad_arguments():
 
 GAUSS = [(lagrax.GaussLegendre4, 4), (lagrax.GaussLegendre6, 6)]
 GAUSS_IDS = ["GL4", "GL6"]
+# GL4 runs every time; GL6, the same checks with another tableau, with `-m slow`
+# (its order is checked every time, by the convergence test).
+GAUSS_CLASSES = [
+    pytest.param(lagrax.GaussLegendre4, id="GL4"),
+    pytest.param(lagrax.GaussLegendre6, id="GL6", marks=pytest.mark.slow),
+]
 
 
 @pytest.mark.parametrize(("cls", "order"), GAUSS, ids=GAUSS_IDS)
@@ -326,6 +332,7 @@ def test_gauss_legendre_convergence_order(cls, order, L):
     assert cls().order(None) == order
 
 
+@pytest.mark.slow  # three solvers compiled; each order is checked every time above
 def test_gauss_legendre_beats_midpoint_at_same_step():
     y0 = (jnp.array([2.5]), jnp.array([0.0]))
     ref = _reference(PENDULUM, y0, 4.0)
@@ -339,9 +346,16 @@ def test_gauss_legendre_beats_midpoint_at_same_step():
     assert e6 < 1e-2 * e4 < 1e-4 * e2, (e2, e4, e6)
 
 
-@pytest.mark.parametrize(("cls", "h_per_period"), [(lagrax.GaussLegendre4, 10),
-                                                   (lagrax.GaussLegendre6, 5)],
-                         ids=GAUSS_IDS)
+# 1000 periods of each; the no-drift of the variational family is checked every time
+# by test_energy_bounded_no_drift_1e3_periods (the midpoint rule).
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("cls", "h_per_period"),
+    [
+        pytest.param(lagrax.GaussLegendre4, 10, id="GL4"),
+        pytest.param(lagrax.GaussLegendre6, 5, id="GL6", marks=pytest.mark.slow),
+    ],
+)
 def test_gauss_legendre_energy_bounded_no_drift(cls, h_per_period):
     T = float(pendulum_period(2.5))
     h = T / h_per_period
@@ -355,14 +369,17 @@ def test_gauss_legendre_energy_bounded_no_drift(cls, h_per_period):
     assert rk[-1] > 5 * rk[0], rk
 
 
-@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+# The midpoint rule's exact Noether momentum runs every time.
+@pytest.mark.slow
+@pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_noether_momentum_exact(cls):
     L = spherical_pendulum()
     y0 = (jnp.array([1.0, 0.0]), jnp.array([0.2, 1.3]))
     saveat = dfx.SaveAt(steps=True, solver_state=True)
     nsteps = 1000
-    sol = _solve(L, y0, nsteps * 0.2, 0.2, solver=cls(), saveat=saveat,
-                 max_steps=nsteps)
+    sol = _solve(
+        L, y0, nsteps * 0.2, 0.2, solver=cls(), saveat=saveat, max_steps=nsteps
+    )
     assert sol.result == dfx.RESULTS.successful
     qs, qdots = sol.ys
     p_phi = jax.vmap(lambda q, v: lagrax.momenta(L, q, v, 0.0))(qs, qdots)[:, 1]
@@ -376,7 +393,7 @@ def test_gauss_legendre_noether_momentum_exact(cls):
     assert float(jnp.max(jnp.abs(energy - energy[0]))) > 1e3 * bound
 
 
-@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+@pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_time_reversible(cls):
     y0 = (jnp.array([2.5]), jnp.array([0.0]))
     fwd = _solve(PENDULUM, y0, 5.0, 0.25, solver=cls())
@@ -388,7 +405,9 @@ def test_gauss_legendre_time_reversible(cls):
     assert not tree_allclose(y1, y0, rtol=0, atol=1e-2)
 
 
-@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+# Gauss-Legendre under jit and vmap runs every time in the per-lane failures test.
+@pytest.mark.slow
+@pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_vmap_jit_match_a_python_loop(cls):
     ts = jnp.linspace(0.0, 3.0, 7)
     q0s = jnp.array([[0.5, 0.1], [1.5, -0.3], [2.5, 0.0]])
@@ -403,16 +422,17 @@ def test_gauss_legendre_vmap_jit_match_a_python_loop(cls):
     assert np.all(np.asarray(sols.result == dfx.RESULTS.successful))
     for i, q0 in enumerate(q0s):
         assert tree_allclose(
-            jax.tree_util.tree_map(lambda x: x[i], sols.ys), one(q0).ys,
-            rtol=1e-12, atol=1e-12,
+            jax.tree_util.tree_map(lambda x: x[i], sols.ys),
+            one(q0).ys,
+            rtol=1e-12,
+            atol=1e-12,
         )
 
 
-@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+@pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_failures_per_lane(cls):
     y0 = (jnp.array([1.0]), jnp.array([0.0]))
-    sol = _solve(PENDULUM, y0, 1.0, 0.1, solver=cls(root_find_max_steps=1),
-                 throw=False)
+    sol = _solve(PENDULUM, y0, 1.0, 0.1, solver=cls(root_find_max_steps=1), throw=False)
     assert sol.result == dfx.RESULTS.nonlinear_max_steps_reached
 
     def L(q, qdot, t):  # NaN for q < 0
@@ -431,7 +451,9 @@ def test_gauss_legendre_failures_per_lane(cls):
     assert np.all(np.isfinite(np.asarray(sols.ys[0][2])))
 
 
-@pytest.mark.parametrize("cls", [c for c, _ in GAUSS], ids=GAUSS_IDS)
+# The midpoint rule's force and time dependence converge every time.
+@pytest.mark.slow
+@pytest.mark.parametrize("cls", GAUSS_CLASSES)
 def test_gauss_legendre_force_and_time_dependence_converge(cls):
     c = 0.3
 
@@ -457,7 +479,10 @@ def test_root_finder_argument():
     y0 = (jnp.array([2.5]), jnp.array([0.0]))
     default = _solve(PENDULUM, y0, 2.0, 0.1)
     tight = _solve(
-        PENDULUM, y0, 2.0, 0.1,
+        PENDULUM,
+        y0,
+        2.0,
+        0.1,
         solver=lagrax.VariationalMidpoint(
             root_finder=optx.Newton(rtol=1e-12, atol=1e-12)
         ),
@@ -467,7 +492,10 @@ def test_root_finder_argument():
     # A root finder given as an argument is the one used: chord iterations (Jacobian
     # frozen) with a loose tolerance give a different, still converged, answer.
     loose = _solve(
-        PENDULUM, y0, 2.0, 0.1,
+        PENDULUM,
+        y0,
+        2.0,
+        0.1,
         solver=lagrax.GaussLegendre4(root_finder=optx.Chord(rtol=1e-3, atol=1e-3)),
         saveat=dfx.SaveAt(t1=True, solver_state=True),
     )
