@@ -255,33 +255,39 @@ class _Order0:
     """Every variable at order 0: the jaxpr evaluated on the lanes' values."""
 
     def __init__(self, prog, s, x, v, leaves, trig=False):
+        self._evaluate(prog, x.shape[0], zip((0, 1, 2), (s, x, v)), leaves, trig)
+
+    def _evaluate(self, prog, W, inputs, leaves, trig):
+        """`inputs`: `(id, lanes' values)` pairs; `leaves`: the parameters' values."""
         self.prog = prog
-        self.W = x.shape[0]
+        self.W = W
         self.val = {}  # order-0 value of every id
         self.bat = {}  # whether that value has the lane axis
         self.cache = {}  # order-0 quantities the recurrences reuse (masks, 1/u_0)
         self.fns = {}
         for i, c in prog.consts.items():
             self.val[i], self.bat[i] = c, False
-        for i, a in zip((0, 1, 2), (s, x, v)):
+        for i, a in inputs:
             self.val[i], self.bat[i] = a, True
         for i, a in zip(prog.params, leaves):
             self.val[i], self.bat[i] = a, True
         for node in prog.nodes:
             vals = [self.val[i] for i in node.ins]
             batched = [self.bat[i] for i in node.ins]
-            if node.kind == "sincos":
-                if trig and vals[0].dtype == jnp.float64:
-                    outs = list(_trig.sincos(vals[0]))
-                else:
-                    outs = [jnp.sin(vals[0]), jnp.cos(vals[0])]
-            elif node.kind == "sinhcosh":
-                outs = [jnp.sinh(vals[0]), jnp.cosh(vals[0])]
-            else:
-                outs = _bind(node.prim, node.params, vals, batched)
+            outs = self._node(node, vals, batched, trig)
             for o, value in zip(node.outs, outs):
                 self.val[o] = value
                 self.bat[o] = any(batched)
+
+    def _node(self, node, vals, batched, trig):
+        """The order-0 outputs of one node."""
+        if node.kind == "sincos":
+            if trig and vals[0].dtype == jnp.float64:
+                return list(_trig.sincos(vals[0]))
+            return [jnp.sin(vals[0]), jnp.cos(vals[0])]
+        if node.kind == "sinhcosh":
+            return [jnp.sinh(vals[0]), jnp.cosh(vals[0])]
+        return _bind(node.prim, node.params, vals, batched)
 
     def lanes(self, i):
         """The order-0 value of `i` with the lane axis, `(W, *shape)`."""

@@ -29,7 +29,7 @@ from .._jaxpr import interpreter, scalarize as _scalarize
 from .._jaxpr.fusion import fusion_off
 from . import solve as _solve
 from .program import _initial, _Order0, _Program, _Store, _Unrolled
-from .recurrences import _bind, _order_k, _RULES
+from .recurrences import _order_k, _RULES
 
 
 _RULES["solve"] = _solve.solve_rule
@@ -83,36 +83,14 @@ class _SystemOrder0(_Order0):
     """Every variable at order 0, the inputs given by id."""
 
     def __init__(self, prog, inputs, leaves, W, trig=False):
-        self.prog = prog
-        self.W = W
-        self.val, self.bat, self.cache, self.fns = {}, {}, {}, {}
-        for i, c in prog.consts.items():
-            self.val[i], self.bat[i] = c, False
-        for i, a in zip(prog.inputs, inputs):
-            self.val[i], self.bat[i] = a, True
-        for i, a in zip(prog.params, leaves):
-            self.val[i], self.bat[i] = a, True
-        for node in prog.nodes:
-            vals = [self.val[i] for i in node.ins]
-            batched = [self.bat[i] for i in node.ins]
-            if node.kind == "sincos":
-                if trig and vals[0].dtype == jnp.float64:
-                    from .._jaxpr import trig as _trig
+        self._evaluate(prog, W, zip(prog.inputs, inputs), leaves, trig)
 
-                    outs = list(_trig.sincos(vals[0]))
-                else:
-                    outs = [jnp.sin(vals[0]), jnp.cos(vals[0])]
-            elif node.kind == "sinhcosh":
-                outs = [jnp.sinh(vals[0]), jnp.cosh(vals[0])]
-            elif node.kind == "solve":
-                n = node.params["n"]
-                x, ok = _solve.entries_solve(vals[: n * n], vals[n * n :], n)
-                outs = [*x, ok]
-            else:
-                outs = _bind(node.prim, node.params, vals, batched)
-            for o, value in zip(node.outs, outs):
-                self.val[o] = value
-                self.bat[o] = any(batched)
+    def _node(self, node, vals, batched, trig):
+        if node.kind == "solve":
+            n = node.params["n"]
+            x, ok = _solve.entries_solve(vals[: n * n], vals[n * n :], n)
+            return [*x, ok]
+        return super()._node(node, vals, batched, trig)
 
 
 def _marked(eqn):
