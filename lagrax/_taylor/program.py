@@ -77,13 +77,7 @@ class _Program:
     """
 
     def __init__(self, closed, n_params):
-        self.nodes = []
-        self.avals = {}
-        self.consts = {}  # id -> value (unbatched)
-        self.series = set()
-        self._const_ids = {}
-        self._cse = {}
-        self._next = 0
+        self._empty()
         scalar = closed.in_avals[0]
         for _ in range(3):
             i = self._new(scalar)
@@ -92,6 +86,15 @@ class _Program:
         ins = list(range(3)) + self.params
         (self.out,) = self._inline(closed.jaxpr, closed.consts, ins)
         self._prune()
+
+    def _empty(self):
+        self.nodes = []
+        self.avals = {}
+        self.consts = {}  # id -> value (unbatched)
+        self.series = set()
+        self._const_ids = {}
+        self._cse = {}
+        self._next = 0
 
     # --- building
     def _new(self, aval):

@@ -41,13 +41,7 @@ class _SystemProgram(_Program):
     cannot be evaluated entry by entry."""
 
     def __init__(self, closed, n_series, n_params):
-        self.nodes = []
-        self.avals = {}
-        self.consts = {}
-        self.series = set()
-        self._const_ids = {}
-        self._cse = {}
-        self._next = 0
+        self._empty()
         self.inputs = []
         for aval in closed.in_avals[:n_series]:
             i = self._new(aval)
@@ -57,7 +51,7 @@ class _SystemProgram(_Program):
         self.params = [self._new(a) for a in rest]
         self.outs = self._inline(closed.jaxpr, closed.consts, self.inputs + self.params)
         self.out = None
-        self._prune()
+        self._prune(self.outs)
 
     def _emit(self, prim, args, params, outvars):
         if prim is not _solve.definite_solve_p or not any(
@@ -68,15 +62,6 @@ class _SystemProgram(_Program):
         outs = self._add("solve", prim, args, params, avals, True)
         self.series.discard(outs[-1])  # `ok`: decided at order 0
         return outs
-
-    def _prune(self):
-        live = set(self.outs)
-        kept = []
-        for node in reversed(self.nodes):
-            if any(o in live for o in node.outs):
-                kept.append(node)
-                live.update(node.ins)
-        self.nodes = kept[::-1]
 
 
 class _SystemOrder0(_Order0):

@@ -168,13 +168,7 @@ class _TapeProgram(_Program):
     `series` ones depending on the state, and any number of outputs."""
 
     def __init__(self, closed, series):
-        self.nodes = []
-        self.avals = {}
-        self.consts = {}
-        self.series = set()
-        self._const_ids = {}
-        self._cse = {}
-        self._next = 0
+        self._empty()
         self.inputs = [self._new(a) for a in closed.in_avals]
         self.series.update(self.inputs[i] for i in series)
         self.params = []
