@@ -127,6 +127,28 @@ def test_only_the_differentiated_inputs_take_forward_passes():
     assert P + 2 not in dims and 3 in dims
 
 
+def test_a_gradient_wrt_q0_takes_one_forward_pass_at_every_level(monkeypatch):
+    # The sweep's own derivative rule runs the kernel's under `jax.jvp`: the
+    # parameters not being differentiated must reach the inner rule as symbolic
+    # zeros, or it adds one direction per parameter (1 + P passes instead of 1).
+    # Traced, not compiled.
+    import lagrax._period.autodiff as autodiff
+
+    counts = []
+    directions = autodiff._directions
+
+    def spy(*args):
+        found = directions(*args)
+        counts.append(len(found))
+        return found
+
+    monkeypatch.setattr(autodiff, "_directions", spy)
+    m, sweep = _pendulum_with_parameters()
+    a = jnp.array([0.3, 1.0, 2.0])
+    jax.make_jaxpr(jax.grad(lambda a: sweep(a, m.g, m.c).sum()))(a)
+    assert counts and all(c == 1 for c in counts), counts
+
+
 @pytest.mark.slow  # two forward-mode kernels compiled
 def test_derivatives_along_q0_and_every_parameter():
     from lagrax.systems import pendulum

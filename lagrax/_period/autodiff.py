@@ -44,15 +44,27 @@ def forward_mode(periods_of, q0, consts, dq0, dconsts):
     if not directions:  # (every tangent a symbolic zero)
         out = periods_of(q0, consts)
         return out, jnp.zeros_like(out[0].periods)
+    # The forward passes differentiate only the inputs being differentiated: the
+    # others enter as constants, so that a `custom_jvp` inside `periods_of` sees
+    # them as symbolic zeros (and adds no directions of its own).
+    with_q = not _is_zero(dq0)
+    picked = [k for k, ok in enumerate(wanted) if ok]
     dq_dirs = jnp.stack([d[0] for d in directions])
-    dc_dirs = [jnp.stack([d[1][k] for d in directions]) for k in range(len(leaves))]
+    dc_dirs = [jnp.stack([d[1][k] for d in directions]) for k in picked]
+
+    def periods_at(q, picked_leaves):
+        full = list(leaves)
+        for k, x in zip(picked, picked_leaves):
+            full[k] = x
+        return periods_of(q if with_q else q0, treedef.unflatten(full))
 
     def tangent(dq, dc):
-        dc = [
-            c if ok else np.zeros(np.shape(x), jax.dtypes.float0)
-            for c, x, ok in zip(dc, leaves, inexact)
-        ]
-        out, dout = jax.jvp(periods_of, (q0, consts), (dq, treedef.unflatten(dc)))
+        picked_leaves = [leaves[k] for k in picked]
+        if with_q:
+            out, dout = jax.jvp(periods_at, (q0, picked_leaves), (dq, dc))
+        else:
+            f = lambda picked_leaves: periods_at(q0, picked_leaves)
+            out, dout = jax.jvp(f, (picked_leaves,), (dc,))
         return out, dout[0].periods
 
     # The primal outputs come from the same forward pass (unbatched over the
