@@ -144,18 +144,18 @@ def abs_max(x, v):
     return jax.tree.map(lambda a, b: jnp.maximum(jnp.abs(a), jnp.abs(b)), x, v)
 
 
-def fused(*trees):
-    """The same pytrees of arrays, computed by XLA in one loop (`one_fusion`): what a
-    step computes shares its stages or its recurrence, computed once. Leaves of
-    shape `(lanes, ...)` pass as their `(lanes,)` columns (a variadic reduction
-    takes operands of one shape)."""
+def fused(*trees, branch_free=False):
+    """The same pytrees of arrays, computed by XLA in one loop (`one_fusion`, with
+    its `branch_free`): what a step computes shares its stages or its recurrence,
+    computed once. Leaves of shape `(lanes, ...)` pass as their `(lanes,)` columns
+    (a variadic reduction takes operands of one shape)."""
     leaves, treedef = jax.tree.flatten(trees)
     columns = {}
     for i, leaf in enumerate(leaves):
         flat = leaf.reshape(leaf.shape[0], -1) if leaf.ndim > 1 else leaf
         for c in range(flat.shape[1] if leaf.ndim > 1 else 1):
             columns[i, c] = flat[:, c] if leaf.ndim > 1 else flat
-    out = one_fusion(columns)
+    out = one_fusion(columns, branch_free=branch_free)
     rebuilt = []
     for i, leaf in enumerate(leaves):
         if leaf.ndim > 1:

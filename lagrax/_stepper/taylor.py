@@ -56,6 +56,8 @@ class TaylorStepper(AbstractStepper):
     max_step: float = eqx.field(static=True)
 
     rejects: ClassVar[bool] = False
+    # How the step's outputs leave its one loop (`fused`): see `one_fusion`.
+    branch_free: ClassVar[bool] = False
 
     @property
     def error_order(self):
@@ -70,6 +72,10 @@ class TaylorStepper(AbstractStepper):
         r"""$h/\rho$ of a free step: the rule takes the radius of convergence $\rho$
         times this."""
         return self.safety * jnp.exp2(jnp.log2(tol) / self.order)
+
+    def exp2(self, x):
+        """$2^x$ for the step length (a subclass may take a cheaper one)."""
+        return jnp.exp2(x)
 
     def coefficients(self, field: LaneField, s, x, v):
         """`(xs, vs, as_)`: lists of per-lane coefficients about `(s, x, v)`."""
@@ -92,7 +98,7 @@ class TaylorStepper(AbstractStepper):
             lj = jnp.where(n > 0, _log2(n), -jnp.inf) / j
             lg = lj if lg is None else jnp.maximum(lg, lj)
         # (Each exp2 with one reader: see `fused` below.)
-        h_jz = self.safety * jnp.exp2(jnp.log2(tol) / K - lg)
+        h_jz = self.safety * self.exp2(jnp.log2(tol) / K - lg)
         h = jnp.where(free, jnp.minimum(h_jz, jnp.minimum(cap, self.max_step)), h)
         h = jax.lax.stop_gradient(h)
         x1, v1 = horner(xs, h), horner(vs, h)
@@ -104,7 +110,9 @@ class TaylorStepper(AbstractStepper):
         # several readers and the acceleration has no `one_fusion` of its own;
         # otherwise XLA's CPU fusion splits it and copies the recurrence into each
         # part (several times slower per lane-step).
-        x1, v1, a1, h, extras = fused(raw.x, raw.v, raw.a, raw.h, raw.extras)
+        x1, v1, a1, h, extras = fused(
+            raw.x, raw.v, raw.a, raw.h, raw.extras, branch_free=self.branch_free
+        )
         # Chosen before it is taken: never rejected; a non-finite step fails.
         error = jnp.where(jnp.isfinite(h), 0.0, jnp.nan)
         return StepResult(x1, v1, a1, h, error, None, extras)

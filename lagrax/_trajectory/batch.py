@@ -16,6 +16,7 @@ controller, saving), several times the Taylor step of a small system.
 """
 
 import functools
+from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
@@ -46,6 +47,28 @@ from .term import _LagrangeVectorField
 _RUNNING, _DONE, _MAX_STEPS, _NONFINITE = 0, 1, 2, 3
 
 
+_LN2 = float(np.log(2.0))
+
+
+def _exp2(x):
+    r"""$2^x$ to 1e-6 relative for float64 from multiply-adds and the exponent's
+    bits (no libm call, no operation XLA counts as expensive); $+\infty$, 0 and NaN
+    where `jnp.exp2` gives them (below $2^{-1022}$: 0). A step length needs a few
+    digits."""
+    n = jnp.floor(x)
+    f = x - n  # in [0, 1)
+    # 2^f on [0, 1): the degree-7 Taylor polynomial of exp(f ln 2), Horner.
+    p = jnp.ones_like(f)
+    for k in range(7, 0, -1):
+        p = 1.0 + p * f * (_LN2 / k)
+    e = jnp.clip(jnp.nan_to_num(n), -1022.0, 1023.0).astype(jnp.int64)
+    scale = jax.lax.bitcast_convert_type((e + 1023) << 52, jnp.float64)
+    out = p * scale
+    out = jnp.where(x > 1024.0, jnp.inf, out)
+    out = jnp.where(x < -1022.0, 0.0, out)
+    return jnp.where(jnp.isnan(x), x, out)
+
+
 class SystemTaylorStepper(TaylorStepper):
     r"""The period loop's Taylor step (`TaylorStepper`: step length, polynomials,
     one fusion) with its coefficients from the program of the first-order system
@@ -54,6 +77,16 @@ class SystemTaylorStepper(TaylorStepper):
     \pm 1$ its direction (`field.params`), so every step is forward."""
 
     system: System = eqx.field(static=True)
+
+    # The step leaves its loop through a select (`one_fusion`'s `branch_free`): a
+    # stack there made XLA emit the recurrence once per output, which LLVM merges
+    # back only for small systems. XLA keeps expensive operations out of such a loop
+    # and would copy the recurrence into the one of the step length's exp2, so that
+    # exp2 is `exp2` below: multiply-adds and a bit shift.
+    branch_free: ClassVar[bool] = True
+
+    def exp2(self, x):
+        return _exp2(x)
 
     def coefficients(self, field, s, x, v):
         K = self.order
