@@ -144,32 +144,25 @@ def test_non_ode_term_rejected():
         dfx.diffeqsolve(term, lagrax.Taylor(order=K), 0.0, 1.0, 0.1, jnp.asarray(1.0))
 
 
-def test_mass_matrix_solve_recurrence_three_coordinates():
-    # n = 3 takes the marked solve (one factorization of M_0 per step): the series
-    # of y' = F(y) against nested JVPs, y_k = y^(k)(0) / k!, up to order 5.
-    def L(q, qdot, t):
-        s = jnp.sin(q)
-        T = 0.5 * qdot @ qdot + 0.05 * (s @ qdot) ** 2  # M = I + 0.1 s s^T
-        return T - 0.5 * q @ q - 0.1 * q[0] * q[1] * q[2]
-
-    field = lagrax.vector_field(L)
-    q0, v0 = jnp.array([0.4, -0.3, 0.7]), jnp.array([0.2, 0.5, -0.1])
-
-    def F(y):
-        return jnp.concatenate(field(0.0, (y[:3], y[3:]), None))
-
+def _check_series_against_jvps(field, q0, v0, order=4):
+    """The series of y' = F(y) from the system's program against nested JVPs,
+    y_k = y^(k)(0) / k!, up to `order`; returns the program."""
     from lagrax._taylor.system import System
 
+    n = q0.shape[0]
+
+    def F(y):
+        return jnp.concatenate(field(0.0, (y[:n], y[n:]), None))
+
     system = System(lambda t, ys, p: list(field(t, tuple(ys), None)), 0.0, [q0, v0], [])
-    assert any(node.kind == "solve" for node in system.prog.nodes)
-    coefs = jax.jit(lambda q, v: system.coefficients(4, jnp.zeros(1), [q, v], []))(
+    coefs = jax.jit(lambda q, v: system.coefficients(order, jnp.zeros(1), [q, v], []))(
         q0[None], v0[None]
     )
-    series = np.array([[float(c[k][0]) for c in coefs] for k in range(5)])
+    series = np.array([[float(c[k][0]) for c in coefs] for k in range(order + 1)])
 
     def derivatives(y):
         g, out = F, []
-        for _ in range(4):
+        for _ in range(order):
             out.append(g(y))
             g = (lambda g: lambda y: jax.jvp(g, (y,), (F(y),))[1])(g)
         return out
@@ -179,3 +172,41 @@ def test_mass_matrix_solve_recurrence_three_coordinates():
     for k, d in enumerate(jax.jit(derivatives)(y), start=1):
         factorial *= k
         np.testing.assert_allclose(series[k], d / factorial, rtol=1e-12, atol=1e-12)
+    return system.prog
+
+
+def test_mass_matrix_solve_recurrence_three_coordinates():
+    # n = 3 takes the marked solve (one factorization of M_0 per step).
+    def L(q, qdot, t):
+        s = jnp.sin(q)
+        T = 0.5 * qdot @ qdot + 0.05 * (s @ qdot) ** 2  # M = I + 0.1 s s^T
+        return T - 0.5 * q @ q - 0.1 * q[0] * q[1] * q[2]
+
+    q0, v0 = jnp.array([0.4, -0.3, 0.7]), jnp.array([0.2, 0.5, -0.1])
+    prog = _check_series_against_jvps(lagrax.vector_field(L), q0, v0)
+    assert any(node.kind == "solve" for node in prog.nodes)
+
+
+def test_merged_program_of_a_particle_chain():
+    # A chain written from particle positions: its autodiff equations repeat
+    # products up to operand order and negate twice; the program merges them and
+    # reads the mass matrix's upper triangle only, with the same series.
+    def positions(q, t):
+        return jnp.stack([jnp.cumsum(jnp.sin(q)), -jnp.cumsum(jnp.cos(q))], axis=1)
+
+    L = lagrax.particle_lagrangian(
+        jnp.ones(3), positions, lambda r, t: 9.81 * jnp.sum(r[:, 1])
+    )
+    q0, v0 = jnp.array([0.4, -0.3, 0.2]), jnp.array([0.1, 0.5, -0.2])
+    prog = _check_series_against_jvps(lagrax.vector_field(L), q0, v0)
+    seen = set()
+    for node in prog.nodes:
+        if node.kind in ("add", "add_any", "mul"):
+            key = (node.kind, frozenset(node.ins))
+            assert key not in seen
+            seen.add(key)
+        if node.kind == "neg":
+            assert all(m.kind != "neg" or m.outs[0] not in node.ins for m in prog.nodes)
+    (solve,) = [node for node in prog.nodes if node.kind == "solve"]
+    M = np.array(solve.ins[:9]).reshape(3, 3)
+    np.testing.assert_array_equal(M, M.T)

@@ -34,6 +34,9 @@ from .recurrences import _order_k, _RULES
 
 _RULES["solve"] = _solve.solve_rule
 
+# Binary primitives whose value does not depend on the order of their operands.
+_COMMUTATIVE = frozenset({"add", "add_any", "mul"})
+
 
 class _SystemProgram(_Program):
     """A `_Program` whose series inputs are $t$ and the entries of $y$, with one
@@ -42,6 +45,7 @@ class _SystemProgram(_Program):
 
     def __init__(self, closed, n_series, n_params):
         self._empty()
+        self._negated = {}  # id of `neg u` -> u
         self.inputs = []
         for aval in closed.in_avals[:n_series]:
             i = self._new(aval)
@@ -54,10 +58,28 @@ class _SystemProgram(_Program):
         self._prune(self.outs)
 
     def _emit(self, prim, args, params, outvars):
+        # The autodiff jaxpr of a Lagrangian written entry by entry repeats terms up
+        # to the order of operands and double negations (a chain of four pendulums:
+        # 303 equations, 220 once merged; each is computed at every order).
+        name = prim.name
+        if name == "neg" and args[0] in self._negated:
+            return [self._negated[args[0]]]
+        if name in _COMMUTATIVE:
+            args = sorted(args)  # exact: a + b == b + a, a * b == b * a
         if prim is not _solve.definite_solve_p or not any(
             a in self.series for a in args
         ):
-            return super()._emit(prim, args, params, outvars)
+            outs = super()._emit(prim, args, params, outvars)
+            if name == "neg":
+                self._negated[outs[0]] = args[0]
+            return outs
+        # M is symmetric (a mass matrix; `factor` symmetrizes it): its upper
+        # triangle only, so the lower one is never computed.
+        n = params["n"]
+        args = list(args)
+        for a in range(n):
+            for b in range(a):
+                args[a * n + b] = args[b * n + a]
         avals = [v.aval for v in outvars]
         outs = self._add("solve", prim, args, params, avals, True)
         self.series.discard(outs[-1])  # `ok`: decided at order 0
