@@ -62,7 +62,7 @@ def one_fusion(values: dict, *, branch_free: bool = False) -> dict:
     `branch_free=True` pairs each value with the identity by a select instead of a
     stack. XLA emits a stack as a branch per value, and each branch's code
     recomputes what the values share (LLVM merges the copies only in small
-    programs: a chain of four pendulums' Taylor coefficients ran ~4x slower). A
+    programs: ~4x the work for a chain of four pendulums' Taylor coefficients). A
     select reads each value twice, so XLA keeps an expensive operation (a division,
     a square root, a transcendental) out of the fusion: for values that share only
     cheap work, or whose expensive part is cheap to compute in loops of its own.
