@@ -331,7 +331,8 @@ def test_fused_accelerations_identical(key, n):
         )
 
 
-def test_one_fusion_is_the_identity():
+@pytest.mark.parametrize("branch_free", [False, True])
+def test_one_fusion_is_the_identity(branch_free):
     from lagrax._jaxpr.fusion import one_fusion
 
     values = dict(
@@ -339,7 +340,7 @@ def test_one_fusion_is_the_identity():
         i=jnp.arange(6, dtype=jnp.int32) - 3,
         b=jnp.array([True, False] * 3),
     )
-    out = jax.jit(one_fusion)(values)
+    out = jax.jit(lambda v: one_fusion(v, branch_free=branch_free))(values)
     assert out.keys() == values.keys()
     for k, v in values.items():
         assert out[k].dtype == v.dtype

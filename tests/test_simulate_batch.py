@@ -117,3 +117,16 @@ def test_bad_shapes():
         lagrax.simulate_batch(
             oscillator, np.zeros((3, 1)), np.zeros((3, 1)), 0.0, np.ones(2)
         )
+
+
+def test_step_length_exp2():
+    # The trajectory step's 2^x (multiply-adds and exponent bits) against jnp.exp2:
+    # a few digits suffice for a step length; the limits are exp2's.
+    from lagrax._trajectory.batch import _exp2
+
+    x = jnp.linspace(-1021.5, 1023.5, 100_001, dtype=jnp.float64)
+    np.testing.assert_allclose(_exp2(x), jnp.exp2(x), rtol=1e-6)
+    edge = jnp.array([jnp.inf, -jnp.inf, jnp.nan, 1025.0, -1100.0, 0.0])
+    np.testing.assert_array_equal(
+        _exp2(edge), [jnp.inf, 0.0, jnp.nan, jnp.inf, 0.0, 1.0]
+    )
