@@ -311,7 +311,7 @@ def simulate_batch(
     atol=1e-8,
     max_steps: int = 16384,
     throw: bool = True,
-    width: int | None = None,
+    width: int = 256,
     **kwargs,
 ) -> dfx.Solution:
     r"""Integrates Lagrange's equations from a batch of releases, batch axis first.
@@ -330,9 +330,7 @@ def simulate_batch(
     **Arguments:** as `lagrax.simulate`, with `q0`, `qdot0` of shape `(B, n)`,
     `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, and
 
-    - `width`: lanes of the compiled loop per device (default: a quarter of the
-        device's releases, at least 16 and at most 256, so that a lane whose
-        release ends takes the next one while the slower ones run).
+    - `width`: lanes of the compiled loop (default 256).
 
     **Returns:**
 
@@ -372,8 +370,7 @@ def simulate_batch(
     rtol = lanes(_positive(rtol, "rtol", dtype), "rtol")
     atol = lanes(_positive(atol, "atol", dtype), "atol")
     max_steps = positive_int(max_steps, "max_steps")
-    if width is not None:
-        width = positive_int(width, "width")
+    width = positive_int(width, "width")
     plan = _saveat_plan(saveat, t0, t1)
     if not isinstance(solver, Taylor) or plan == "vmap" or kwargs:
 
@@ -386,14 +383,6 @@ def simulate_batch(
         sol = jax.vmap(one)(q0, qdot0, t0, t1, rtol, atol)
         return _raise_if_failed(sol, throw)
     ts, save_t1 = plan
-    cpu = jax.default_backend() == "cpu"
-    devices = tuple(jax.local_devices())
-    D = len(devices) if B >= len(devices) else 1
-    if width is None:
-        # Several releases per lane: with one each, every lane waits for the
-        # slowest release's step count (a chain of four pendulums from rest: 72%
-        # of the lane-steps useful); a lane of the next release stays busy.
-        width = min(256, max(16, -(-B // (4 * D))))
     cfg = _Config(
         field=_LagrangeVectorField(L, force),
         order=solver.order,
@@ -403,6 +392,9 @@ def simulate_batch(
         max_steps=max_steps,
     )
     ts_arr = jnp.zeros((0,), dtype) if ts is None else ts.astype(dtype)
+    cpu = jax.default_backend() == "cpu"
+    devices = tuple(jax.local_devices())
+    D = len(devices) if B >= len(devices) else 1
     args = (q0, qdot0, t0, t1, rtol, atol)
     if B % D:  # padded with copies of the last release, dropped below
         args = tuple(
