@@ -169,14 +169,15 @@ class TapeMechanics(eqx.Module):
 
     def _eval(self, tape, inputs, order=0, directions=None):
         """The tape's outputs at one point (scalars), or with `directions` their
-        coefficients of order 1 along them."""
-        lane = lambda u: jnp.reshape(jnp.asarray(u, self.tapes.rest.values.dtype), (1,))
-        ins = [lane(u) for u in [*inputs, *self.params]]
+        coefficients of order 1 along them. Under `vmap`, one interpreter over the
+        lanes (`_wide`)."""
+        dtype = self.tapes.rest.values.dtype
+        ins = [jnp.asarray(u, dtype) for u in [*inputs, *self.params]]
         if directions is not None:
-            zero = jnp.zeros_like(ins[0])
-            dirs = [lane(d) for d in directions] + [zero] * len(self.params)
-            ins = [jnp.stack([u, d]) for u, d in zip(ins, dirs)]
-        out = tape_series(tape, ins, order, trig=True)
+            zero = jnp.zeros((), dtype)
+            dirs = [jnp.asarray(d, dtype) for d in directions]
+            ins += dirs + [zero] * len(self.params)
+        out = _wide(tape, order, jnp.stack(ins)[:, None])
         return out[:, order, 0] if directions is not None else out[:, 0, 0]
 
     def _point(self, q, qdot, t):
@@ -250,13 +251,9 @@ class TapeMechanics(eqx.Module):
 
     def rest_value_and_slope(self, dtype):
         def both(q):
-            out = tape_series(
-                self.tapes.rest,
-                [jnp.stack([jnp.reshape(q, (1,)), jnp.ones((1,), q.dtype)])]
-                + [jnp.reshape(p, (1,)) for p in self.params],
-                1,
-                trig=True,
-            )
+            ins = [q, *self.params, jnp.ones_like(q)] + [0.0] * len(self.params)
+            ins = jnp.stack([jnp.asarray(u, q.dtype) for u in ins])[:, None]
+            out = _wide(self.tapes.rest, 1, ins)
             return out[0, 0, 0], out[0, 1, 0]
 
         return both
@@ -273,3 +270,41 @@ class TapeAccel(eqx.Module):
         ins = [s, x, v, *p, *self.params]
         ins = [jnp.reshape(u, (1,)) for u in ins]
         return tape_series(self.tape, ins, 0, trig=True)[0, 0, 0]
+
+
+def _series(tape, order, xs):
+    """The series of the tape's outputs to `order` over lanes, shape `(outputs,
+    order + 1, W)`: `xs` of shape `(n, W)`, the inputs' values, then at order 1
+    their directions (`n` even)."""
+    if order == 0:
+        ins = list(xs)
+    else:
+        half = xs.shape[0] // 2
+        ins = [jnp.stack([u, d]) for u, d in zip(xs[:half], xs[half:])]
+    return tape_series(tape, ins, order, trig=True)
+
+
+def _wide(tape, order, xs):
+    """`_series`, which under `vmap` evaluates every lane in one interpreter of
+    width lanes x W: the period program evaluates L lane by lane in several places
+    (the release, the end of a leg, ...), and a vmapped interpreter compiles to
+    several times the code of a wide one."""
+
+    @jax.custom_batching.custom_vmap
+    def run(tape, xs):
+        return _series(tape, order, xs)
+
+    @run.def_vmap
+    def rule(axis_size, in_batched, tape, xs):
+        if any(jax.tree.leaves(in_batched[0])):  # (a batch of tapes: as it comes)
+            axes = (jax.tree.map(lambda b: 0 if b else None, in_batched[0]), 0)
+            xs = xs if in_batched[1] else jnp.broadcast_to(xs, (axis_size, *xs.shape))
+            return jax.vmap(run, in_axes=axes)(tape, xs), True
+        if not in_batched[1]:
+            xs = jnp.broadcast_to(xs, (axis_size, *xs.shape))
+        n, W = xs.shape[1:]
+        out = _wide(tape, order, jnp.moveaxis(xs, 0, 1).reshape(n, axis_size * W))
+        out = out.reshape(*out.shape[:2], axis_size, W)
+        return jnp.moveaxis(out, 2, 0), True
+
+    return run(tape, xs)
