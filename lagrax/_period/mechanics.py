@@ -17,13 +17,15 @@ Each method works on one lane (scalars, or `(1,)` for coordinates) and is vmappe
 its caller, except `lane_field_accel`, over lanes.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from .._eom.mechanics import _accelerations, _jacobi
 from .._jaxpr.trig import vectorized_trig
-from .._taylor.tape import Tape, tape_series
+from .._taylor.tape import Tape, tape_coefficients, tape_series
 
 
 class TapeSet(eqx.Module):
@@ -78,6 +80,21 @@ class AutodiffMechanics(eqx.Module):
     def point(self, q, qdot, t, fuse=None):
         """`accelerations` and `jacobi` at one point."""
         return self.accelerations(q, qdot, t, fuse), self.jacobi(q, qdot, t)
+
+    def rest_and_end(self, q0, q_end, qdot_end, t_end):
+        """`jacobi` at rest at `q0` and `point` at the end of a leg (scalars)."""
+        zero = jnp.zeros((), q0.dtype)
+        start = self.jacobi(q0[None], zero[None], zero)
+        return start, self.point(q_end[None], qdot_end[None], t_end, fuse=False)
+
+    def end_accel_and_jerk(self, r, s, x, v):
+        """`end_accel` and `end_jerk` there."""
+        a = self.end_accel(r, s, x, v)
+        return a, self.end_jerk(r, s, x, v, a)
+
+    def end_accels(self, r, points):
+        """`end_accel` at several points `(s, x, v)`."""
+        return [self.end_accel(r, *p) for p in points]
 
     def scaled_acceleration(self, fuse=None):
         """The acceleration in a lane's own units: `accel(q0, Qs, tau, s, x, v)`."""
@@ -167,21 +184,55 @@ class TapeMechanics(eqx.Module):
     def params(self):
         return list(self.consts[1:])
 
+    def _inputs(self, points, directions=None):
+        """`(inputs, points)`: each point's inputs and the parameters (scalars), then
+        with `directions` theirs (the parameters' zero)."""
+        dtype = self.tapes.rest.values.dtype
+        cols = []
+        for i, p in enumerate(points):
+            col = [*p, *self.params]
+            if directions is not None:
+                col += [*directions[i], *([0.0] * len(self.params))]
+            cols.append(jnp.stack([jnp.asarray(u, dtype) for u in col]))
+        return jnp.stack(cols, axis=1)
+
+    def _evals(self, tape, points, directions=None):
+        """The tape's outputs at several points (lists of scalar inputs): shape
+        `(outputs, points)`; with `directions`, their coefficients of order 1 along
+        them. One interpreter for all points, and under `vmap` for all lanes
+        (`_wide`)."""
+        order = 0 if directions is None else 1
+        xs = self._inputs(points, directions)
+        return _wide(functools.partial(_series, order=order), tape, xs)[:, order]
+
     def _eval(self, tape, inputs, order=0, directions=None):
         """The tape's outputs at one point (scalars), or with `directions` their
-        coefficients of order 1 along them. Under `vmap`, one interpreter over the
-        lanes (`_wide`)."""
-        dtype = self.tapes.rest.values.dtype
-        ins = [jnp.asarray(u, dtype) for u in [*inputs, *self.params]]
-        if directions is not None:
-            zero = jnp.zeros((), dtype)
-            dirs = [jnp.asarray(d, dtype) for d in directions]
-            ins += dirs + [zero] * len(self.params)
-        out = _wide(tape, order, jnp.stack(ins)[:, None])
-        return out[:, order, 0] if directions is not None else out[:, 0, 0]
+        coefficients of order 1 along them."""
+        dirs = None if directions is None else [directions]
+        return self._evals(tape, [inputs], dirs)[:, 0]
 
     def _point(self, q, qdot, t):
         return self._eval(self.tapes.point, [q[0], qdot[0], t])
+
+    def rest_and_end(self, q0, q_end, qdot_end, t_end):
+        zero = jnp.zeros((), q0.dtype)
+        points = [[q0, zero, zero], [q_end, qdot_end, t_end]]
+        start, end = self._evals(self.tapes.point, points).T
+        qddot, M, ok, h, size, _ = end
+        return (start[3], start[4]), (
+            (qddot[None], (M[None, None], ok != 0)),
+            (h, size),
+        )
+
+    def end_accel_and_jerk(self, r, s, x, v):
+        """One Taylor step's first two coefficients of the acceleration."""
+        xs = self._inputs([[s, x, v, r.q0, r.Qs, r.tau]])
+        a, jerk = _wide(_accel_and_jerk, self.tapes.scaled, xs)[:, 0]
+        return a, jerk
+
+    def end_accels(self, r, points):
+        points = [[*p, r.q0, r.Qs, r.tau] for p in points]
+        return list(self._evals(self.tapes.scaled, points)[0])
 
     def accelerations(self, q, qdot, t, fuse=None):
         qddot, M, ok = self._point(q, qdot, t)[:3]
@@ -251,9 +302,8 @@ class TapeMechanics(eqx.Module):
 
     def rest_value_and_slope(self, dtype):
         def both(q):
-            ins = [q, *self.params, jnp.ones_like(q)] + [0.0] * len(self.params)
-            ins = jnp.stack([jnp.asarray(u, q.dtype) for u in ins])[:, None]
-            out = _wide(self.tapes.rest, 1, ins)
+            xs = self._inputs([[q]], [[jnp.ones_like(q)]])
+            out = _wide(functools.partial(_series, order=1), self.tapes.rest, xs)
             return out[0, 0, 0], out[0, 1, 0]
 
         return both
@@ -272,7 +322,7 @@ class TapeAccel(eqx.Module):
         return tape_series(self.tape, ins, 0, trig=True)[0, 0, 0]
 
 
-def _series(tape, order, xs):
+def _series(tape, xs, order):
     """The series of the tape's outputs to `order` over lanes, shape `(outputs,
     order + 1, W)`: `xs` of shape `(n, W)`, the inputs' values, then at order 1
     their directions (`n` even)."""
@@ -284,27 +334,34 @@ def _series(tape, order, xs):
     return tape_series(tape, ins, order, trig=True)
 
 
-def _wide(tape, order, xs):
-    """`_series`, which under `vmap` evaluates every lane in one interpreter of
-    width lanes x W: the period program evaluates L lane by lane in several places
-    (the release, the end of a leg, ...), and a vmapped interpreter compiles to
-    several times the code of a wide one."""
+def _accel_and_jerk(tape, xs):
+    """The acceleration tape's value and its derivative along the flow over lanes,
+    shape `(2, W)`: a Taylor step's coefficients of order 0 and 1 (`xs`: `(s, x, v,
+    *params)`, each of shape `(W,)`)."""
+    return tape_coefficients(tape, 2, xs[0], xs[1], xs[2], list(xs[3:]), trig=True)[2]
+
+
+def _wide(fn, tape, xs):
+    """`fn(tape, xs)` (`xs` of shape `(n, W)`, outputs with the lanes last), which
+    under `vmap` evaluates every lane in one interpreter of width lanes x W: the
+    period program evaluates L lane by lane in several places (the release, the end
+    of a leg, ...), and a vmapped interpreter compiles to several times the code of
+    a wide one."""
 
     @jax.custom_batching.custom_vmap
     def run(tape, xs):
-        return _series(tape, order, xs)
+        return fn(tape, xs)
 
     @run.def_vmap
     def rule(axis_size, in_batched, tape, xs):
-        if any(jax.tree.leaves(in_batched[0])):  # (a batch of tapes: as it comes)
-            axes = (jax.tree.map(lambda b: 0 if b else None, in_batched[0]), 0)
-            xs = xs if in_batched[1] else jnp.broadcast_to(xs, (axis_size, *xs.shape))
-            return jax.vmap(run, in_axes=axes)(tape, xs), True
         if not in_batched[1]:
             xs = jnp.broadcast_to(xs, (axis_size, *xs.shape))
+        if any(jax.tree.leaves(in_batched[0])):  # (a batch of tapes: as it comes)
+            axes = (jax.tree.map(lambda b: 0 if b else None, in_batched[0]), 0)
+            return jax.vmap(run, in_axes=axes)(tape, xs), True
         n, W = xs.shape[1:]
-        out = _wide(tape, order, jnp.moveaxis(xs, 0, 1).reshape(n, axis_size * W))
-        out = out.reshape(*out.shape[:2], axis_size, W)
-        return jnp.moveaxis(out, 2, 0), True
+        out = _wide(fn, tape, jnp.moveaxis(xs, 0, 1).reshape(n, axis_size * W))
+        out = out.reshape(*out.shape[:-1], axis_size, W)
+        return jnp.moveaxis(out, -2, 0), True
 
     return run(tape, xs)

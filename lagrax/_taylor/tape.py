@@ -642,7 +642,11 @@ def tape_coefficients(tape: Tape, order: int, s, x, v, params=(), trig=False):
         i32 = lambda i: jnp.asarray(i, jnp.int32)
         return lax.dynamic_update_slice(C, both[:, None], (i32(2), i32(k + 1), i32(0)))
 
-    C = lax.fori_loop(1, K, orders, C)
+    if K > 3:
+        C = lax.fori_loop(1, K, orders, C)
+    else:  # (a few orders written out: a loop is kernels of its own)
+        for k in range(1, K):
+            C = orders(jnp.asarray(k, jnp.int32), C)
     return C[2], C[3], C[out, :K]
 
 
