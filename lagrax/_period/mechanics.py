@@ -163,9 +163,15 @@ class AutodiffMechanics(eqx.Module):
         return lambda qs: one(qs) if qs.ndim == 1 else jnp.stack([one(q) for q in qs])
 
     def rest_lanes_with_slope(self, dtype):
-        """`qs -> (L(qs, 0, 0), dL/dq)` over lanes."""
+        """`qs -> (L(qs, 0, 0), dL/dq)` over lanes (`qs` as in `rest_lanes`)."""
         value, slope = jax.vmap(self.rest(dtype)), jax.vmap(self.rest_slope(dtype))
-        return lambda qs: (value(qs), slope(qs))
+
+        def both(qs):
+            if qs.ndim == 1:
+                return value(qs), slope(qs)
+            return jnp.stack([value(q) for q in qs]), jnp.stack([slope(q) for q in qs])
+
+        return both
 
 
 class TapeMechanics(eqx.Module):
