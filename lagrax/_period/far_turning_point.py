@@ -48,7 +48,7 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     # Each value of L is computed once and carried (for the pendulum each is a libm
     # call per lane, otherwise recomputed for F, its rounding and each loop's test).
     # The bracket starts at q_m and its mirror image q_m + (q_m - q0).
-    (E0, La, Lb), (_, _, dLb) = both(jnp.stack([q0, q_m, q_m + (q_m - q0)]))
+    (E0, La, Lb), dLb = both(jnp.stack([q0, q_m, q_m + (q_m - q0)]), 2)
     # F = L(q) - L(q0) is known only to the rounding of the two values of L: inside
     # that band every point is the turning point as far as float64 can tell.
     noise = lambda Lq: 4 * eps * (jnp.abs(Lq) + jnp.abs(E0))
@@ -62,8 +62,8 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     # (At the root F = 0: the slope's own tangent multiplies F and is dropped.)
     # With the band, L at x and at the band's points from one call.
     points = _band_points(x) if with_band else []
-    Ls, slopes = both(jnp.stack([x, *points]))
-    Lx, slope = Ls[0], jax.lax.stop_gradient(slopes[0])
+    Ls, slope = both(jnp.stack([x, *points]), 0)
+    Lx, slope = Ls[0], jax.lax.stop_gradient(slope)
     f0 = Lx - E0
     corr = -f0 / slope
     corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)

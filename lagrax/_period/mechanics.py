@@ -163,13 +163,14 @@ class AutodiffMechanics(eqx.Module):
         return lambda qs: one(qs) if qs.ndim == 1 else jnp.stack([one(q) for q in qs])
 
     def rest_lanes_with_slope(self, dtype):
-        """`qs -> (L(qs, 0, 0), dL/dq)` over lanes (`qs` as in `rest_lanes`)."""
+        """`(qs, k) -> (L(qs, 0, 0), dL/dq)` over lanes; for `qs` of shape `(m,
+        lanes)`, the values at every row and the slope at row `k`."""
         value, slope = jax.vmap(self.rest(dtype)), jax.vmap(self.rest_slope(dtype))
 
-        def both(qs):
+        def both(qs, k=0):
             if qs.ndim == 1:
                 return value(qs), slope(qs)
-            return jnp.stack([value(q) for q in qs]), jnp.stack([slope(q) for q in qs])
+            return jnp.stack([value(q) for q in qs]), slope(qs[k])
 
         return both
 
@@ -304,7 +305,11 @@ class TapeMechanics(eqx.Module):
         return lambda qs: self._rest_lanes(qs, 0)[0]
 
     def rest_lanes_with_slope(self, dtype):
-        return lambda qs: tuple(self._rest_lanes(qs, 1))
+        def both(qs, k=0):
+            values, slopes = self._rest_lanes(qs, 1)
+            return values, (slopes if qs.ndim == 1 else slopes[k])
+
+        return both
 
     def rest_value_and_slope(self, dtype):
         def both(q):
