@@ -44,16 +44,15 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     # (Values at several points, and a value with its slope, each from one call:
     # on the tape path each call is an interpreter in the program.)
     mech = mechanics(L, consts)
-    Lr_v = mech.rest_lanes(dtype)
     both = mech.rest_lanes_with_slope(dtype)
-    dF = lambda q: both(q)[1]
     # Each value of L is computed once and carried (for the pendulum each is a libm
     # call per lane, otherwise recomputed for F, its rounding and each loop's test).
-    E0 = Lr_v(q0)
+    # The bracket starts at q_m and its mirror image q_m + (q_m - q0).
+    (E0, La, Lb), dLb = both(jnp.stack([q0, q_m, q_m + (q_m - q0)]), 2)
     # F = L(q) - L(q0) is known only to the rounding of the two values of L: inside
     # that band every point is the turning point as far as float64 can tell.
     noise = lambda Lq: 4 * eps * (jnp.abs(Lq) + jnp.abs(E0))
-    a, b, Fa, Fb, Lb = _bracket(Lr_v, dF, noise, E0, q0, q_m)
+    a, b, Fa, Fb, Lb = _bracket(both, noise, E0, q0, q_m, La, Lb, dLb)
     at_b = jnp.abs(Fb) <= noise(Lb)  # e.g. the mirror image, in a symmetric well
     found = ((Fb <= 0) | at_b) & (Fa > 0) & jnp.isfinite(a) & jnp.isfinite(b)
     secant = a + (b - a) * Fa / jnp.where(Fa != Fb, Fa - Fb, 1.0)
@@ -61,8 +60,10 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     x = _newton(both, noise, E0, a, b, x, found, at_b)
     # The tangent of the root by the implicit function theorem (zero primal).
     # (At the root F = 0: the slope's own tangent multiplies F and is dropped.)
-    Lx, slope = both(x)
-    slope = jax.lax.stop_gradient(slope)
+    # With the band, L at x and at the band's points from one call.
+    points = _band_points(x) if with_band else []
+    Ls, slope = both(jnp.stack([x, *points]), 0)
+    Lx, slope = Ls[0], jax.lax.stop_gradient(slope)
     f0 = Lx - E0
     corr = -f0 / slope
     corr = jnp.where(found & jnp.isfinite(corr), corr, 0.0)
@@ -70,47 +71,49 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     in_range = jnp.isfinite(E0)
     if not with_band:
         return FarTurningPoint(root, found, jnp.zeros_like(x), in_range)
-    band = _band(Lr_v, E0, x, Lx, f0, slope)
+    band = _band(Ls[1:], E0, x, Lx, f0, slope)
     return FarTurningPoint(root, found, band, in_range)
 
 
-def _bracket(Lr_v, dF, noise, E0, q0, q_m):
+def _bracket(both, noise, E0, q0, q_m, La, Lb, dLb):
     """`(a, b, F(a), F(b), L(b))` with F(a) > 0 >= F(b) (where found): from the mirror
     image of q0 (the root itself if the well is mirror-symmetric, up to rounding)
     outward by a Newton step times 1, 2, 4, … (for a convex F Newton undershoots),
     never less than a few ulps, and by |d| times the same factor where F does not
-    fall outward (a shoulder)."""
+    fall outward (a shoulder). `La`, `Lb`, `dLb`: L at q_m and at the mirror image,
+    and its slope there."""
     eps = jnp.finfo(q0.dtype).eps
     d = q_m - q0
     out = jnp.sign(d)  # away from the release point
     a, b = q_m, q_m + d
-    La, Lb = Lr_v(jnp.stack([a, b]))
     Fa, Fb = La - E0, Lb - E0
 
     def expand(c):
-        a, b, Fa, Fb, Lb, k = c
+        a, b, Fa, Fb, Lb, dLb, k = c
         more = Fb > noise(Lb)
-        slope = -out * dF(b)
+        slope = -out * dLb
         newton = Fb / jnp.where(slope > 0, slope, 1.0)
         step = jnp.where(slope > 0, newton, jnp.abs(d)) * 2.0**k
         step = jnp.maximum(step, 4 * eps * jnp.maximum(jnp.abs(b), jnp.abs(d)))
         b2 = jnp.where(more, b + out * step, b)
-        L2 = Lr_v(b2)
+        # (The slope at the new end with its value: one evaluation per step.)
+        L2, dL2 = both(b2)
         new = dict(
             a=jnp.where(more, b, a),
             b=b2,
             Fa=jnp.where(more, Fb, Fa),
             Fb=jnp.where(more, L2 - E0, Fb),
             Lb=jnp.where(more, L2, Lb),
+            dLb=jnp.where(more, dL2, dLb),
         )
         # (Each loop's new values from one fusion, as in the period loop.)
         new = one_fusion(new)
         return (*new.values(), k + 1)
 
-    a, b, Fa, Fb, Lb, _ = jax.lax.while_loop(
-        lambda c: jnp.any(c[3] > noise(c[4])) & (c[5] < _MAX_EXPAND),
+    a, b, Fa, Fb, Lb, _, _ = jax.lax.while_loop(
+        lambda c: jnp.any(c[3] > noise(c[4])) & (c[6] < _MAX_EXPAND),
         expand,
-        (a, b, Fa, Fb, Lb, 0),
+        (a, b, Fa, Fb, Lb, dLb, 0),
     )
     return a, b, Fa, Fb, Lb
 
@@ -141,16 +144,29 @@ def _newton(both, noise, E0, a, b, x, found, at_b):
     return x
 
 
-def _band(Lr_v, E0, x, Lx, f0, slope):
+_BAND_STEPS = (-4, -3, -2, -1, 1, 2, 3, 4)
+
+
+def _band_spacing(x):
+    eps = jnp.finfo(x.dtype).eps
+    return 64 * eps * jnp.maximum(jnp.abs(x), eps)
+
+
+def _band_points(x):
+    """Where `_band` reads L: 64 ulps apart around x."""
+    h = _band_spacing(x)
+    return [x + j * h for j in _BAND_STEPS]
+
+
+def _band(Ls, E0, x, Lx, f0, slope):
     """How far the root is undetermined: the rounding scatter of F near the root,
     measured (the user's L may round by many ulps, or by half of one), over its
-    slope. Nine values of F spaced 64 ulps apart (the middle one is f0), against the
-    tangent line."""
+    slope. Nine values of F spaced 64 ulps apart (the middle one is f0; `Ls`: L at
+    the others, `_band_points`), against the tangent line."""
     eps = jnp.finfo(x.dtype).eps
-    h = 64 * eps * jnp.maximum(jnp.abs(x), eps)
+    h = _band_spacing(x)
     scatter = jnp.zeros_like(x)
-    js = (-4, -3, -2, -1, 1, 2, 3, 4)
-    for j, Lj in zip(js, Lr_v(jnp.stack([x + j * h for j in js]))):
+    for j, Lj in zip(_BAND_STEPS, Ls):
         scatter = jnp.maximum(scatter, jnp.abs(Lj - E0 - f0 - slope * j * h))
     half_ulp = 0.5 * eps * jnp.maximum(jnp.abs(Lx), jnp.abs(E0))
     return (scatter + half_ulp) / jnp.abs(slope)

@@ -62,12 +62,10 @@ def _lane_end(mech, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e
     and the error bound's sums in time units."""
     dtype = r.q0.dtype
     eps = jnp.finfo(dtype).eps
-    zero = jnp.zeros((), dtype)
     q0, M0, a0s, Qs, tau = r.q0, r.M0, r.a0s, r.Qs, r.tau
     q_end, qdot_end, t_end = q0 + Qs * x_e, (Qs / tau) * v_e, tau * s_e
-    h0, size0 = mech.jacobi(q0[None], zero[None], zero)
-    (_, (M_end, ok_end)), (h1, size1) = mech.point(
-        q_end[None], qdot_end[None], t_end, fuse=False
+    (h0, size0), ((_, (M_end, ok_end)), (h1, size1)) = mech.rest_and_end(
+        q0, q_end, qdot_end, t_end
     )
     scale = jnp.abs(M0 * a0s) * Qs
     tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
@@ -81,9 +79,8 @@ def _lane_end(mech, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e
         tau * ph, tau * J, tau * F / Qs, jnp.where(const_mass, G, jnp.inf)
     )
     status = _status(raw, r, drifted, ok_end, h1)
-    a_e = mech.end_accel(r, s_e, x_e, v_e)
+    a_e, jerk = mech.end_accel_and_jerk(r, s_e, x_e, v_e)
     g = Event(kind, sigma, (target - q0) / Qs).value(x_e, v_e, a_e)
-    jerk = mech.end_jerk(r, s_e, x_e, v_e, a_e)
     ends = (status.astype(jnp.int32), q_end, qdot_end, a_e, g, jerk)
     return ends, terms
 
@@ -93,10 +90,14 @@ def _central_jerk(mech, r, s_e, x_e, v_e, a_e):
     removable singularity in a third derivative exactly at the event (x ** p with an
     array of exponents at x = 0 gives 0 * inf)."""
     d = 1e-5
-    return (
-        mech.end_accel(r, s_e + d, x_e + v_e * d + 0.5 * a_e * d**2, v_e + a_e * d)
-        - mech.end_accel(r, s_e - d, x_e - v_e * d + 0.5 * a_e * d**2, v_e - a_e * d)
-    ) / (2 * d)
+    ahead, behind = mech.end_accels(
+        r,
+        [
+            (s_e + d, x_e + v_e * d + 0.5 * a_e * d**2, v_e + a_e * d),
+            (s_e - d, x_e - v_e * d + 0.5 * a_e * d**2, v_e - a_e * d),
+        ],
+    )
+    return (ahead - behind) / (2 * d)
 
 
 def _event_time(r, kind, sigma, raw, s_e, v_e, a_e, g, jerk, q_end, qdot_end):

@@ -17,13 +17,15 @@ Each method works on one lane (scalars, or `(1,)` for coordinates) and is vmappe
 its caller, except `lane_field_accel`, over lanes.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from .._eom.mechanics import _accelerations, _jacobi
 from .._jaxpr.trig import vectorized_trig
-from .._taylor.tape import Tape, tape_series
+from .._taylor.tape import Tape, tape_coefficients, tape_series
 
 
 class TapeSet(eqx.Module):
@@ -78,6 +80,21 @@ class AutodiffMechanics(eqx.Module):
     def point(self, q, qdot, t, fuse=None):
         """`accelerations` and `jacobi` at one point."""
         return self.accelerations(q, qdot, t, fuse), self.jacobi(q, qdot, t)
+
+    def rest_and_end(self, q0, q_end, qdot_end, t_end):
+        """`jacobi` at rest at `q0` and `point` at the end of a leg (scalars)."""
+        zero = jnp.zeros((), q0.dtype)
+        start = self.jacobi(q0[None], zero[None], zero)
+        return start, self.point(q_end[None], qdot_end[None], t_end, fuse=False)
+
+    def end_accel_and_jerk(self, r, s, x, v):
+        """`end_accel` and `end_jerk` there."""
+        a = self.end_accel(r, s, x, v)
+        return a, self.end_jerk(r, s, x, v, a)
+
+    def end_accels(self, r, points):
+        """`end_accel` at several points `(s, x, v)`."""
+        return [self.end_accel(r, *p) for p in points]
 
     def scaled_acceleration(self, fuse=None):
         """The acceleration in a lane's own units: `accel(q0, Qs, tau, s, x, v)`."""
@@ -146,9 +163,16 @@ class AutodiffMechanics(eqx.Module):
         return lambda qs: one(qs) if qs.ndim == 1 else jnp.stack([one(q) for q in qs])
 
     def rest_lanes_with_slope(self, dtype):
-        """`qs -> (L(qs, 0, 0), dL/dq)` over lanes."""
+        """`(qs, k) -> (L(qs, 0, 0), dL/dq)` over lanes; for `qs` of shape `(m,
+        lanes)`, the values at every row and the slope at row `k`."""
         value, slope = jax.vmap(self.rest(dtype)), jax.vmap(self.rest_slope(dtype))
-        return lambda qs: (value(qs), slope(qs))
+
+        def both(qs, k=0):
+            if qs.ndim == 1:
+                return value(qs), slope(qs)
+            return jnp.stack([value(q) for q in qs]), slope(qs[k])
+
+        return both
 
 
 class TapeMechanics(eqx.Module):
@@ -167,20 +191,55 @@ class TapeMechanics(eqx.Module):
     def params(self):
         return list(self.consts[1:])
 
+    def _inputs(self, points, directions=None):
+        """`(inputs, points)`: each point's inputs and the parameters (scalars), then
+        with `directions` theirs (the parameters' zero)."""
+        dtype = self.tapes.rest.values.dtype
+        cols = []
+        for i, p in enumerate(points):
+            col = [*p, *self.params]
+            if directions is not None:
+                col += [*directions[i], *([0.0] * len(self.params))]
+            cols.append(jnp.stack([jnp.asarray(u, dtype) for u in col]))
+        return jnp.stack(cols, axis=1)
+
+    def _evals(self, tape, points, directions=None):
+        """The tape's outputs at several points (lists of scalar inputs): shape
+        `(outputs, points)`; with `directions`, their coefficients of order 1 along
+        them. One interpreter for all points, and under `vmap` for all lanes
+        (`_wide`)."""
+        order = 0 if directions is None else 1
+        xs = self._inputs(points, directions)
+        return _wide(functools.partial(_series, order=order), tape, xs)[:, order]
+
     def _eval(self, tape, inputs, order=0, directions=None):
         """The tape's outputs at one point (scalars), or with `directions` their
         coefficients of order 1 along them."""
-        lane = lambda u: jnp.reshape(jnp.asarray(u, self.tapes.rest.values.dtype), (1,))
-        ins = [lane(u) for u in [*inputs, *self.params]]
-        if directions is not None:
-            zero = jnp.zeros_like(ins[0])
-            dirs = [lane(d) for d in directions] + [zero] * len(self.params)
-            ins = [jnp.stack([u, d]) for u, d in zip(ins, dirs)]
-        out = tape_series(tape, ins, order, trig=True)
-        return out[:, order, 0] if directions is not None else out[:, 0, 0]
+        dirs = None if directions is None else [directions]
+        return self._evals(tape, [inputs], dirs)[:, 0]
 
     def _point(self, q, qdot, t):
         return self._eval(self.tapes.point, [q[0], qdot[0], t])
+
+    def rest_and_end(self, q0, q_end, qdot_end, t_end):
+        zero = jnp.zeros((), q0.dtype)
+        points = [[q0, zero, zero], [q_end, qdot_end, t_end]]
+        start, end = self._evals(self.tapes.point, points).T
+        qddot, M, ok, h, size, _ = end
+        return (start[3], start[4]), (
+            (qddot[None], (M[None, None], ok != 0)),
+            (h, size),
+        )
+
+    def end_accel_and_jerk(self, r, s, x, v):
+        """One Taylor step's first two coefficients of the acceleration."""
+        xs = self._inputs([[s, x, v, r.q0, r.Qs, r.tau]])
+        a, jerk = _wide(_accel_and_jerk, self.tapes.scaled, xs)[:, 0]
+        return a, jerk
+
+    def end_accels(self, r, points):
+        points = [[*p, r.q0, r.Qs, r.tau] for p in points]
+        return list(self._evals(self.tapes.scaled, points)[0])
 
     def accelerations(self, q, qdot, t, fuse=None):
         qddot, M, ok = self._point(q, qdot, t)[:3]
@@ -246,17 +305,16 @@ class TapeMechanics(eqx.Module):
         return lambda qs: self._rest_lanes(qs, 0)[0]
 
     def rest_lanes_with_slope(self, dtype):
-        return lambda qs: tuple(self._rest_lanes(qs, 1))
+        def both(qs, k=0):
+            values, slopes = self._rest_lanes(qs, 1)
+            return values, (slopes if qs.ndim == 1 else slopes[k])
+
+        return both
 
     def rest_value_and_slope(self, dtype):
         def both(q):
-            out = tape_series(
-                self.tapes.rest,
-                [jnp.stack([jnp.reshape(q, (1,)), jnp.ones((1,), q.dtype)])]
-                + [jnp.reshape(p, (1,)) for p in self.params],
-                1,
-                trig=True,
-            )
+            xs = self._inputs([[q]], [[jnp.ones_like(q)]])
+            out = _wide(functools.partial(_series, order=1), self.tapes.rest, xs)
             return out[0, 0, 0], out[0, 1, 0]
 
         return both
@@ -273,3 +331,48 @@ class TapeAccel(eqx.Module):
         ins = [s, x, v, *p, *self.params]
         ins = [jnp.reshape(u, (1,)) for u in ins]
         return tape_series(self.tape, ins, 0, trig=True)[0, 0, 0]
+
+
+def _series(tape, xs, order):
+    """The series of the tape's outputs to `order` over lanes, shape `(outputs,
+    order + 1, W)`: `xs` of shape `(n, W)`, the inputs' values, then at order 1
+    their directions (`n` even)."""
+    if order == 0:
+        ins = list(xs)
+    else:
+        half = xs.shape[0] // 2
+        ins = [jnp.stack([u, d]) for u, d in zip(xs[:half], xs[half:])]
+    return tape_series(tape, ins, order, trig=True)
+
+
+def _accel_and_jerk(tape, xs):
+    """The acceleration tape's value and its derivative along the flow over lanes,
+    shape `(2, W)`: a Taylor step's coefficients of order 0 and 1 (`xs`: `(s, x, v,
+    *params)`, each of shape `(W,)`)."""
+    return tape_coefficients(tape, 2, xs[0], xs[1], xs[2], list(xs[3:]), trig=True)[2]
+
+
+def _wide(fn, tape, xs):
+    """`fn(tape, xs)` (`xs` of shape `(n, W)`, outputs with the lanes last), which
+    under `vmap` evaluates every lane in one interpreter of width lanes x W: the
+    period program evaluates L lane by lane in several places (the release, the end
+    of a leg, ...), and a vmapped interpreter compiles to several times the code of
+    a wide one."""
+
+    @jax.custom_batching.custom_vmap
+    def run(tape, xs):
+        return fn(tape, xs)
+
+    @run.def_vmap
+    def rule(axis_size, in_batched, tape, xs):
+        if not in_batched[1]:
+            xs = jnp.broadcast_to(xs, (axis_size, *xs.shape))
+        if any(jax.tree.leaves(in_batched[0])):  # (a batch of tapes: as it comes)
+            axes = (jax.tree.map(lambda b: 0 if b else None, in_batched[0]), 0)
+            return jax.vmap(run, in_axes=axes)(tape, xs), True
+        n, W = xs.shape[1:]
+        out = _wide(fn, tape, jnp.moveaxis(xs, 0, 1).reshape(n, axis_size * W))
+        out = out.reshape(*out.shape[:-1], axis_size, W)
+        return jnp.moveaxis(out, -2, 0), True
+
+    return run(tape, xs)

@@ -14,11 +14,15 @@ Taken only where nothing is traced (eager calls: under `jit`, `grad` or `vmap` t
 program being compiled is the caller's), the stepper is the Taylor step, and the
 Lagrangian's tapes can be built (scalar parameters, primitives with an opcode).
 
-Off unless `LAGRAX_TAPE_TIER=1`: the tape path's executable is today larger than a
-specialized one (each place the program evaluates L inlines an interpreter), so its
-one compile per machine costs more than a Lagrangian's, and it runs tens of times
-slower per step (`benchmarks/first_result.py` measures both). Its results agree
-with the specialized program's to rounding, with the same statuses.
+Off unless `LAGRAX_TAPE_TIER=1`: each place the period program evaluates $L$
+inlines an interpreter (twelve: the step's coefficients, its end and its event in
+the loop; the release; three at the end of a leg; four in the far turning point's
+search; the mass check), each one interpreter over all the lanes and points it
+needs, and XLA compiles each on its own. Its one compile per machine (and tracing, three
+times the specialized program's) still costs more than a Lagrangian's specialized
+first sweep, and it runs tens of times slower per step (`benchmarks/first_result.py`
+measures both). Its results agree with the specialized program's to rounding, with
+the same statuses.
 """
 
 import collections

@@ -462,12 +462,17 @@ def _order0_branches(trig):
     flt = lambda mask, like: mask.astype(like.dtype)
 
     def pick(member, rows):
-        """`rows[member]`: each row `(value, g, d, mask)`, `None` meaning 1."""
-        stacked = [
-            jnp.stack([jnp.ones_like(r[0]) if r[i] is None else r[i] for r in rows])
-            for i in range(4)
-        ]
-        return tuple(lax.dynamic_index_in_dim(x, member, 0, False) for x in stacked)
+        """`rows[member]`: each row `(value, g, d, mask)`, `None` meaning 1. A chain
+        of selects on the scalar `member`: one elementwise fusion (stacking the rows
+        and indexing them compiles to several times the code)."""
+        picked = []
+        for i in range(4):
+            out = None
+            for m, r in enumerate(rows):
+                x = jnp.ones_like(r[0]) if r[i] is None else r[i]
+                out = x if out is None else jnp.where(member == m, x, out)
+            picked.append(out)
+        return tuple(picked)
 
     def arith(a, b, c, member):
         sign = jnp.where(a >= 0, 1.0, -1.0)
@@ -549,10 +554,17 @@ def _put(C, val, slot, k):
     return lax.dynamic_update_slice(C, val[None, None, :], (i32(slot), i32(k), i32(0)))
 
 
-def _initial(tape, K, W, dtype):
-    """Every slot's series: the constants' values at order 0, zeros elsewhere."""
-    C = jnp.zeros((tape.values.shape[0], K + 1, W), dtype)
-    return C.at[:, 0, :].set(jnp.broadcast_to(tape.values[:, None], (C.shape[0], W)))
+def _initial(tape, K, W, dtype, inputs):
+    """Every slot's series: the inputs' (slots 1, 2, ...; each of shape `(W,)`, its
+    value, or `(K + 1, W)`), the constants' values at order 0, zeros elsewhere. One
+    concatenation: an update per input is a kernel per input in every place the
+    interpreter is inlined."""
+    S, n = tape.values.shape[0], len(inputs)
+    series = lambda u: jnp.zeros((K + 1, W), dtype).at[0].set(jnp.broadcast_to(u, (W,)))
+    ins = jnp.stack([u if u.ndim == 2 else series(u) for u in inputs])
+    consts = jnp.broadcast_to(tape.values[1 + n :, None, None], (S - 1 - n, 1, W))
+    consts = jnp.concatenate([consts, jnp.zeros((S - 1 - n, K, W), dtype)], axis=1)
+    return jnp.concatenate([jnp.zeros((1, K + 1, W), dtype), ins, consts])
 
 
 def _order0(tape, C, trig):
@@ -589,13 +601,14 @@ def _order(tape, C, G, k):
         xk, yk = C[X, k], C[Y, k]
         # (Only the rows with a Cauchy product compute one: a branch on a scalar
         # costs less than a product over every order and lane.)
-        conv = lax.cond(
-            (c3 != 0) | (c4 != 0),
-            lambda: jnp.sum(
-                (c3 + c4 * jk * g[None]) * C[P] * (C[Q][back] * below), axis=0
-            ),
-            lambda: jnp.zeros_like(xk),
+        product = lambda: jnp.sum(
+            (c3 + c4 * jk * g[None]) * C[P] * (C[Q][back] * below), axis=0
         )
+        # (Short series: the product always, a branch is kernels of its own.)
+        if K1 > 3:
+            conv = lax.cond((c3 != 0) | (c4 != 0), product, lambda: jnp.zeros_like(xk))
+        else:
+            conv = product()
         y = (c1 * xk + c2 * yk + conv) * d
         y = jnp.where(pick != 0, jnp.where(mask != 0, xk, yk), y)
         return _put(C, y, out, k)
@@ -614,10 +627,9 @@ def tape_coefficients(tape: Tape, order: int, s, x, v, params=(), trig=False):
     x = jnp.asarray(x)
     W, dtype = x.shape[0], x.dtype
     lanes = lambda u: jnp.broadcast_to(jnp.asarray(u, dtype), (W,))
-    C = _initial(tape, K, W, dtype)
-    ins = [lanes(s), x, lanes(v), *(lanes(p) for p in params)]
-    C = C.at[1 : 1 + len(ins), 0].set(jnp.stack(ins))
-    C = C.at[1, 1].set(1.0)  # s(h) = s + h
+    s_h = jnp.zeros((K + 1, W), dtype).at[0].set(lanes(s)).at[1].set(1.0)  # s + h
+    ins = [s_h, x, lanes(v), *(lanes(p) for p in params)]
+    C = _initial(tape, K, W, dtype, ins)
     C, G = _order0(tape, C, trig)
     out = tape.outputs[0]
     C = C.at[2, 1].set(C[3, 0]).at[3, 1].set(C[out, 0])
@@ -630,7 +642,11 @@ def tape_coefficients(tape: Tape, order: int, s, x, v, params=(), trig=False):
         i32 = lambda i: jnp.asarray(i, jnp.int32)
         return lax.dynamic_update_slice(C, both[:, None], (i32(2), i32(k + 1), i32(0)))
 
-    C = lax.fori_loop(1, K, orders, C)
+    if K > 3:
+        C = lax.fori_loop(1, K, orders, C)
+    else:  # (a few orders written out: a loop is kernels of its own)
+        for k in range(1, K):
+            C = orders(jnp.asarray(k, jnp.int32), C)
     return C[2], C[3], C[out, :K]
 
 
@@ -643,10 +659,9 @@ def tape_series(tape: Tape, inputs, order: int = 1, trig=False):
     K = int(order)
     first = jnp.asarray(inputs[0])
     W, dtype = first.shape[-1], first.dtype
-    C = _initial(tape, K, W, dtype)
-    for i, u in enumerate(inputs):
-        u = jnp.asarray(u, dtype)
-        C = C.at[1 + i, 0].set(u) if u.ndim == 1 else C.at[1 + i].set(u)
+    C = _initial(tape, K, W, dtype, [jnp.asarray(u, dtype) for u in inputs])
     C, G = _order0(tape, C, trig)
-    C = lax.fori_loop(1, K + 1, lambda k, C: _order(tape, C, G, k), C)
+    # (A few orders written out: a loop is kernels of its own.)
+    for k in range(1, K + 1):
+        C = _order(tape, C, G, jnp.asarray(k, jnp.int32))
     return C[tape.outputs]
