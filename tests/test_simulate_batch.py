@@ -130,3 +130,30 @@ def test_step_length_exp2():
     np.testing.assert_array_equal(
         _exp2(edge), [jnp.inf, 0.0, jnp.nan, jnp.inf, 0.0, 1.0]
     )
+    # In float32 (its own exponent bits, no float64 in a float32 loop).
+    x32 = jnp.linspace(-125.5, 127.5, 10_001, dtype=jnp.float32)
+    assert _exp2(x32).dtype == jnp.float32
+    np.testing.assert_allclose(_exp2(x32), jnp.exp2(x32), rtol=1e-5)
+    np.testing.assert_array_equal(
+        _exp2(edge.astype(jnp.float32)), [jnp.inf, 0.0, jnp.nan, jnp.inf, 0.0, 1.0]
+    )
+
+
+def test_float32_releases():
+    # float32 releases stay float32 through the loop and meet a float32 tolerance.
+    q0 = jnp.linspace(0.1, 1.0, 5, dtype=jnp.float32)[:, None]
+    sol = lagrax.simulate_batch(
+        oscillator,
+        q0,
+        jnp.zeros_like(q0),
+        0.0,
+        2.0,
+        solver=TAYLOR,
+        rtol=1e-5,
+        atol=1e-5,
+    )
+    q, v = sol.ys
+    assert q.dtype == jnp.float32
+    assert np.all(sol.result == dfx.RESULTS.successful)
+    q_ex, v_ex = exact(np.asarray(q0, np.float64), 0.0, 2.0)
+    np.testing.assert_allclose(q[:, -1], q_ex, atol=1e-4)

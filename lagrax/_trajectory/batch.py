@@ -53,21 +53,24 @@ _LN2 = float(np.log(2.0))
 
 
 def _exp2(x):
-    r"""$2^x$ to 1e-6 relative for float64 from multiply-adds and the exponent's
-    bits (no libm call, no operation XLA counts as expensive); $+\infty$, 0 and NaN
-    where `jnp.exp2` gives them (below $2^{-1022}$: 0). A step length needs a few
-    digits."""
+    r"""$2^x$ to 1e-6 relative (1e-5 in float32) from multiply-adds
+    and the exponent's bits of `x`'s own dtype (no libm call, no operation XLA counts
+    as expensive); $+\infty$, 0 and NaN where `jnp.exp2` gives them (below the
+    smallest normal: 0). A step length needs a few digits."""
+    finfo = jnp.finfo(x.dtype)
+    bits = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[finfo.dtype.itemsize]
     n = jnp.floor(x)
     f = x - n  # in [0, 1)
     # 2^f on [0, 1): the degree-7 Taylor polynomial of exp(f ln 2), Horner.
     p = jnp.ones_like(f)
     for k in range(7, 0, -1):
         p = 1.0 + p * f * (_LN2 / k)
-    e = jnp.clip(jnp.nan_to_num(n), -1022.0, 1023.0).astype(jnp.int64)
-    scale = jax.lax.bitcast_convert_type((e + 1023) << 52, jnp.float64)
+    bias = finfo.maxexp - 1
+    e = jnp.clip(jnp.nan_to_num(n), finfo.minexp, bias).astype(bits)
+    scale = jax.lax.bitcast_convert_type((e + bias) << finfo.nmant, x.dtype)
     out = p * scale
-    out = jnp.where(x > 1024.0, jnp.inf, out)
-    out = jnp.where(x < -1022.0, 0.0, out)
+    out = jnp.where(x > finfo.maxexp, jnp.inf, out)
+    out = jnp.where(x < finfo.minexp, 0.0, out)
     return jnp.where(jnp.isnan(x), x, out)
 
 
