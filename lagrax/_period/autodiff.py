@@ -68,8 +68,15 @@ def forward_mode(periods_of, q0, consts, dq0, dconsts):
         return out, dout[0].periods
 
     # The primal outputs come from the same forward pass (unbatched over the
-    # directions): one copy of the sweep in the compiled program, not two.
-    out, jac = jax.vmap(tangent, out_axes=(None, 0))(dq_dirs, dc_dirs)  # (dirs, n)
+    # directions): one copy of the sweep in the compiled program, not two. One
+    # direction (a derivative along q0 alone, the usual `jax.grad`) needs no `vmap`:
+    # batching the loops' while and cond bodies retraces them to a fixed point,
+    # several times the tracing of the forward pass itself.
+    if len(directions) == 1:
+        out, jac = tangent(dq_dirs[0], [d[0] for d in dc_dirs])
+        jac = jac[None]
+    else:
+        out, jac = jax.vmap(tangent, out_axes=(None, 0))(dq_dirs, dc_dirs)  # (dirs, n)
     k = 0
     dT = jnp.zeros_like(out[0].periods)
     if not _is_zero(dq0):
