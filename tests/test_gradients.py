@@ -181,3 +181,39 @@ def _leading_dims(jaxpr):
                 if hasattr(sub, "eqns"):
                     dims |= _leading_dims(sub)
     return dims
+
+
+def test_the_far_turning_point_takes_its_tangent_from_the_implicit_function():
+    # The far turning point of an asymmetric well (V = q²/2 + q³/5, released at rest
+    # at q0 < 0) moves with q0 as the energy V(q0) dictates, dq1/dq0 = V'(q0)/V'(q1),
+    # and its bracket and Newton loops carry no tangents: their while loops have as
+    # many carries under `jax.jvp` as without it.
+    from lagrax._period.far_turning_point import far_turning_point
+
+    V = lambda q: 0.5 * q**2 + 0.2 * q**3
+    L = lambda q, qd, t: 0.5 * qd[0] ** 2 - V(q[0])
+    q0 = jnp.array([-0.3, -0.8])
+    q_m = jnp.zeros(2)
+    q1 = lambda q0: far_turning_point(L, [], q0, q_m).q1
+    dV = jax.vmap(jax.grad(V))
+    root, dq1 = jax.jvp(q1, (q0,), (jnp.ones(2),))
+    assert np.all(np.asarray(root) > 0)
+    np.testing.assert_allclose(dq1, dV(q0) / dV(root), rtol=1e-10)
+
+    def carries(jaxpr):
+        return sorted(len(e.invars) for e in _whiles(jaxpr))
+
+    primal = jax.make_jaxpr(q1)(q0).jaxpr
+    tangent = jax.make_jaxpr(lambda q: jax.jvp(q1, (q,), (q,)))(q0).jaxpr
+    assert carries(primal) and carries(tangent) == carries(primal)
+
+
+def _whiles(jaxpr):
+    """The while loops of a jaxpr, nested ones too."""
+    from jax._src import core
+
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "while":
+            yield eqn
+        for sub in core.jaxprs_in_params(eqn.params):
+            yield from _whiles(sub)

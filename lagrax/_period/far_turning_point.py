@@ -51,13 +51,18 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     (E0, La, Lb), dLb = both(jnp.stack([q0, q_m, q_m + (q_m - q0)]), 2)
     # F = L(q) - L(q0) is known only to the rounding of the two values of L: inside
     # that band every point is the turning point as far as float64 can tell.
-    noise = lambda Lq: 4 * eps * (jnp.abs(Lq) + jnp.abs(E0))
-    a, b, Fa, Fb, Lb = _bracket(both, noise, E0, q0, q_m, La, Lb, dLb)
+    # The search carries no tangents: the root's comes from the implicit function
+    # below, in which the tangent of x cancels (its loops' tangents would be traced
+    # and compiled for nothing).
+    sg = jax.lax.stop_gradient
+    search = sg((E0, q0, q_m, La, Lb, dLb))
+    noise = lambda Lq: 4 * eps * (jnp.abs(Lq) + jnp.abs(search[0]))
+    a, b, Fa, Fb, Lb = _bracket(both, noise, *search)
     at_b = jnp.abs(Fb) <= noise(Lb)  # e.g. the mirror image, in a symmetric well
     found = ((Fb <= 0) | at_b) & (Fa > 0) & jnp.isfinite(a) & jnp.isfinite(b)
     secant = a + (b - a) * Fa / jnp.where(Fa != Fb, Fa - Fb, 1.0)
-    x = jnp.where(found, jnp.where(at_b, b, secant), q0)
-    x = _newton(both, noise, E0, a, b, x, found, at_b)
+    x = jnp.where(found, jnp.where(at_b, b, secant), search[1])
+    x = _newton(both, noise, search[0], a, b, x, found, at_b)
     # The tangent of the root by the implicit function theorem (zero primal).
     # (At the root F = 0: the slope's own tangent multiplies F and is dropped.)
     # With the band, L at x and at the band's points from one call.
@@ -71,7 +76,8 @@ def far_turning_point(L, consts, q0, q_m, with_band=True) -> FarTurningPoint:
     in_range = jnp.isfinite(E0)
     if not with_band:
         return FarTurningPoint(root, found, jnp.zeros_like(x), in_range)
-    band = _band(Ls[1:], E0, x, Lx, f0, slope)
+    # (The band only sizes the error estimate: no tangent.)
+    band = sg(_band(Ls[1:], E0, x, Lx, f0, slope))
     return FarTurningPoint(root, found, band, in_range)
 
 
