@@ -34,7 +34,7 @@ from .._checks import (
 )
 from .._custom_types import GeneralizedForce, Lagrangian
 from .._jaxpr.fusion import ELEMENTAL
-from .._stepper.base import horner, LaneField
+from .._stepper.base import LaneField
 from .._stepper.taylor import TaylorStepper
 from .._taylor.solver import Taylor
 from .._taylor.system import System
@@ -48,8 +48,6 @@ _UNROLL_BUDGET = 8000
 # Per-lane outcome codes of the loop, mapped onto diffrax.RESULTS at the end.
 _RUNNING, _DONE, _MAX_STEPS, _NONFINITE = 0, 1, 2, 3
 
-
-_COMPENSATE = 0
 
 _LN2 = float(np.log(2.0))
 
@@ -130,7 +128,6 @@ class _Config(eqx.Module):
     n_save: int = eqx.field(static=True)
     save_t1: bool = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
-    compensate: int = eqx.field(static=True, default=0)
 
 
 def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
@@ -175,54 +172,34 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
         return row[:, :n], row[:, n : 2 * n], row[:, 2 * n :], idx >= B
 
     def body(carry):
-        x, v, p, ints, done, saves, ends, nxt, (cx, cv, ct) = carry
+        x, v, p, ints, done, saves, ends, nxt = carry
         idx, j, steps = ints[:, 0], ints[:, 1], ints[:, 2]
         active = ~done
         s = p[:, S0]
-        C = cfg.compensate
-        s_lo = ct if C >= 2 else jnp.zeros_like(s)
-        state_c = C in (1, 2)
         lane_field = LaneField(
             accel=lambda s, x, v: jax.tree.map(jnp.zeros_like, x), params=p[:, SIGMA]
         )
         # Never past the end, and at most one save time inside a step (the state
         # there read from the step's polynomials, inside its fusion).
-        cap = p[:, S1] - s - s_lo
+        cap = p[:, S1] - s
         if M:
-            after = jnp.where(j + 1 < M, taus(p, j + 1) - s - s_lo, jnp.inf)
+            after = jnp.where(j + 1 < M, taus(p, j + 1) - s, jnp.inf)
             cap = jnp.minimum(cap, after)
 
-        def within(raw):
-            extras = ()
-            if M:
-                extras = raw.expansion.at(taus(p, j) - s - s_lo)
-            if state_c:
-                e, h = raw.expansion, raw.h
-                inc = lambda cs: jax.tree.map(lambda a: a * h, horner(cs[1:], h))
-                x1, cx1 = _two_sums(cols(x), inc(e.xs), cols(cx))
-                v1, cv1 = _two_sums(cols(v), inc(e.vs), cols(cv))
-                raw = eqx.tree_at(lambda r: (r.x, r.v), raw, (x1, v1))
-                extras = (extras, cx1, cv1)
-            return eqx.tree_at(lambda r: r.extras, raw, extras, is_leaf=_none)
+            def within(raw):
+                qs, ws = raw.expansion.at(taus(p, j) - s)
+                return eqx.tree_at(lambda r: r.extras, raw, (qs, ws), is_leaf=_none)
 
+        else:
+            within = None
         cols = lambda y: tuple(y[:, i] for i in range(n))
         step = stepper.step(
             lane_field, s, cols(x), cols(v), cols(x), cap, p[:, RTOL], p[:, ATOL],
             free=active, cap=cap, within=within,
         )  # fmt: skip
-        if C >= 2:
-            t, ct1 = _two_sum(s, step.h + ct)
-        else:
-            t, ct1 = s + step.h, ct
-        end = active & (p[:, S1] - t - ct1 <= 0)
+        t = s + step.h
+        end = active & (p[:, S1] - t <= 0)
         t = jnp.where(end, p[:, S1], t)
-        ct1 = jnp.where(end, 0.0, ct1)
-        extras = step.extras
-        if state_c:
-            extras, cx1, cv1 = extras
-            cx = jnp.where(active[:, None], jnp.stack(cx1, axis=1), cx)
-            cv = jnp.where(active[:, None], jnp.stack(cv1, axis=1), cv)
-        ct = jnp.where(active, ct1, ct)
         x = jnp.where(active[:, None], jnp.stack(step.x, axis=1), x)
         v = jnp.where(active[:, None], jnp.stack(step.v, axis=1), v)
         steps = steps + active.astype(steps.dtype)
@@ -230,8 +207,8 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
             jnp.isfinite(x).all(1) & jnp.isfinite(v).all(1) & jnp.isfinite(step.error)
         )
         if M:
-            hit = active & (j < M) & (t - taus(p, j) + ct >= 0)
-            qs, ws = (jnp.stack(c, axis=1) for c in extras)
+            hit = active & (j < M) & (t - taus(p, j) >= 0)
+            qs, ws = (jnp.stack(c, axis=1) for c in step.extras)
             ysave = jnp.concatenate([qs, p[:, SIGMA, None] * ws], axis=1)
             saves = saves.at[jnp.where(hit, idx, B), jnp.minimum(j, M - 1)].set(ysave)
             j = j + hit.astype(j.dtype)
@@ -250,9 +227,6 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
         x_new, v_new, p_new, idle = load(new_idx)
         x = jnp.where(finished[:, None], x_new, x)
         v = jnp.where(finished[:, None], v_new, v)
-        cx = jnp.where(finished[:, None], 0.0, cx)
-        cv = jnp.where(finished[:, None], 0.0, cv)
-        ct = jnp.where(finished, 0.0, ct)
         p = jnp.where(finished[:, None], p_new, p.at[:, S0].set(t))
         zero = jnp.zeros_like(j)
         ints = jnp.stack(
@@ -261,7 +235,7 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
         )
         done = jnp.where(finished, idle, done)
         nxt = nxt + jnp.sum(finished).astype(nxt.dtype)
-        return x, v, p, ints, done, saves, ends, nxt, (cx, cv, ct)
+        return x, v, p, ints, done, saves, ends, nxt
 
     def cond(carry):
         return jnp.any(~carry[4])
@@ -271,9 +245,8 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
     ints = jnp.stack([idx0, jnp.zeros_like(idx0), jnp.zeros_like(idx0)], axis=1)
     saves = jnp.full((B + 1, M, 2 * n), jnp.nan, dtype)
     ends = jnp.full((B + 1, 2 * n + 3), jnp.nan, dtype)
-    comp = (jnp.zeros_like(x), jnp.zeros_like(v), jnp.zeros_like(x[:, 0]))
-    carry = (x, v, p, ints, done, saves, ends, jnp.int32(W), comp)
-    *_, saves, ends, _, _ = jax.lax.while_loop(cond, body, carry)
+    carry = (x, v, p, ints, done, saves, ends, jnp.int32(W))
+    *_, saves, ends, _ = jax.lax.while_loop(cond, body, carry)
     m = 2 * n
     ys = saves[:B]
     if cfg.save_t1:
@@ -284,17 +257,6 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
 
 def _none(x):
     return x is None
-
-
-def _two_sum(a, b):
-    s = a + b
-    bp = s - a
-    return s, (a - (s - bp)) + (b - bp)
-
-
-def _two_sums(x, dx, c):
-    out = [_two_sum(a, d + e) for a, d, e in zip(x, dx, c)]
-    return tuple(o[0] for o in out), tuple(o[1] for o in out)
 
 
 @functools.cache
@@ -431,7 +393,6 @@ def simulate_batch(
         n_save=0 if ts is None else int(ts.shape[0]),
         save_t1=save_t1,
         max_steps=max_steps,
-        compensate=_COMPENSATE,
     )
     ts_arr = jnp.zeros((0,), dtype) if ts is None else ts.astype(dtype)
     cpu = jax.default_backend() == "cpu"
