@@ -355,6 +355,65 @@ def work_heyoka(args):
     return dict(rows=rows, curves=curves)
 
 
+def work_floor(args):
+    """Where float64 stops converging: heyoka.py's batch mode at tight tolerances,
+    plain and with `high_accuracy=True` (compensated summation of its Taylor
+    polynomials), per-release errors; and how much each release amplifies a
+    perturbation of its release state by +-1e-11 over t = 10 (tol 1e-15)."""
+    import heyoka as hy
+    import numpy as np
+
+    q0, v0 = _initial(args.system, args.quick)
+    ref = np.asarray(json.loads(args.reference_json))
+    y0 = np.concatenate([q0, v0], axis=1)
+    n, B = q0.shape[1], hy.recommended_simd_size()
+    sys_ = _heyoka_system(args.system)
+
+    def run(tol, high_accuracy, y0=y0):
+        tb = hy.taylor_adaptive_batch(
+            sys_, np.zeros((2 * n, B)), tol=tol, high_accuracy=high_accuracy
+        )
+        out = np.empty_like(y0)
+        for i in range(0, len(y0), B):
+            idx = np.arange(i, min(i + B, len(y0)))
+            tb.set_time(0.0)
+            tb.state[:] = y0[np.resize(idx, B)].T
+            tb.propagate_until(T1)
+            out[idx] = tb.state[:, : len(idx)].T
+        return out, tb.order
+
+    rows = []
+    for high_accuracy in (False, True):
+        for tol in args.floor_tols:
+            ys, order = run(tol, high_accuracy)
+            err = np.abs(ys - ref).max(axis=1)
+            rows.append(
+                dict(
+                    name=f"heyoka.py batch (SIMD {B})"
+                    + (", high_accuracy" if high_accuracy else ""),
+                    tol=tol,
+                    order=order,
+                    max_error=float(err.max()),
+                    median_error=float(np.median(err)),
+                    worst=np.argsort(err)[::-1][:5].tolist(),
+                )
+            )
+            print(rows[-1], file=sys.stderr, flush=True)
+    delta = 1e-11
+    signs = np.random.default_rng(1).choice([-1.0, 1.0], y0.shape)
+    a, _ = run(1e-15, False)
+    b, _ = run(1e-15, False, y0 + delta * signs)
+    amp = np.abs(a - b).max(axis=1) / delta
+    amplification = dict(
+        delta=delta,
+        max=float(amp.max()),
+        median=float(np.median(amp)),
+        worst=np.argsort(amp)[::-1][:5].tolist(),
+    )
+    print(amplification, file=sys.stderr, flush=True)
+    return dict(rows=rows, amplification=amplification)
+
+
 # --------------------------------------------------------------------------- lagrax
 
 
@@ -811,6 +870,14 @@ def main():
         help="only lagrax.accelerations inside a user's solve against vector_field "
         "and a hand-written EOM (results/trajectories_accelerations.json)",
     )
+    p.add_argument(
+        "--floor",
+        action="store_true",
+        help="only heyoka.py's error floor (plain and high_accuracy) at --floor-tols "
+        "and each release's amplification of a 1e-11 perturbation "
+        "(results/trajectories_floor.json)",
+    )
+    p.add_argument("--floor-tols", type=float, nargs="+", default=[1e-14, 1e-16])
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--core", type=int, default=1)
     p.add_argument(
@@ -832,6 +899,7 @@ def main():
             heyoka=work_heyoka,
             lagrax=work_lagrax,
             gpu=work_gpu,
+            floor=work_floor,
         )[args.worker]
         print(json.dumps(fn(args)))
         return
@@ -855,6 +923,21 @@ def main():
             )
         with open(os.path.join(RESULTS, "trajectories_accelerations.json"), "w") as fh:
             json.dump(out, fh, indent=1)
+        return
+    if args.floor:
+        path = os.path.join(RESULTS, "trajectories_floor.json")
+        report = {}
+        if os.path.exists(path):
+            with open(path) as fh:
+                report = json.load(fh)
+        tols = ["--floor-tols", *map(str, args.floor_tols)]
+        for system in args.systems or ["chain6"]:
+            ref = reference(args, system)
+            out = spawn("floor", args, system, "core", ref, tols)
+            report[system] = dict(date=time.strftime("%Y-%m-%d"), **out)
+        with open(path, "w") as fh:
+            json.dump(report, fh, indent=1)
+        print(f"wrote {path}")
         return
     suffix = "_quick" if args.quick else ""
     path = os.path.join(RESULTS, f"trajectories{suffix}.json")

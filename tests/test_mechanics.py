@@ -401,3 +401,45 @@ def test_scalarize_folds_constants_as_xla_does():
     assert _fold_exact("sin", [one], {}) is None
     assert _fold_exact("max", [np.float64(0.0), np.float64(-0.0)], {}) is None
     assert _fold_exact("add", [np.ones(2), np.ones(2)], {}) is None
+
+
+def test_equations_derived_once_per_lagrangian_and_shapes():
+    # A solver traces its vector field several times: the equations of one L at one
+    # set of shapes are derived once, then replayed, in any later trace too.
+    calls = []
+
+    def L(q, qdot, t):
+        calls.append(1)
+        return 0.5 * jnp.sum(qdot**2) + jnp.sum(jnp.cos(q))
+
+    f = lagrax.vector_field(L)
+    y = (jnp.array([0.3, -0.2]), jnp.array([0.1, 0.4]))
+    want = f(0.0, y, None)[1]
+    first = jax.jit(lambda y: f(0.0, y, None)[1])
+    np.testing.assert_allclose(first(y), want, rtol=1e-15)
+    derived = len(calls)
+    assert derived > 0
+    other = jax.jit(jax.vmap(lambda y: 2.0 * f(0.0, y, None)[1]))
+    ys = jax.tree.map(lambda x: jnp.stack([x, 2 * x]), y)
+    got = other(ys)
+    assert len(calls) == derived
+    np.testing.assert_allclose(got[0], 2 * want, rtol=1e-15)
+    # Other shapes derive again.
+    jax.jit(lambda y: f(0.0, y, None)[1])((y[0][:1], y[1][:1]))
+    assert len(calls) > derived
+
+
+def test_equations_of_a_lagrangian_closing_over_a_tracer():
+    # L built inside a transformation closes over its tracer: its equations are not
+    # kept past that trace, and each trace sees its own parameter.
+    def period_proxy(g):
+        L = lambda q, qdot, t: 0.5 * jnp.sum(qdot**2) + g * jnp.sum(jnp.cos(q))
+        f = lagrax.vector_field(L)
+        y = (jnp.array([0.5]), jnp.array([0.0]))
+        return f(0.0, y, None)[1][0] + f(0.0, y, None)[1][0]
+
+    for g in (1.0, 2.5):
+        np.testing.assert_allclose(jax.grad(period_proxy)(g), -2 * np.sin(0.5))
+        np.testing.assert_allclose(
+            jax.jit(period_proxy)(g), -2 * g * np.sin(0.5), rtol=1e-15
+        )

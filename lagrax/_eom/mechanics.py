@@ -13,11 +13,15 @@ no Hessian of $L$, no third-order tensor. For $n \le 2$ that pass and the closed
 solve are evaluated entry by entry (`_scalarize.py`), which XLA fuses into one loop.
 """
 
+import inspect
+import weakref
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
+from jax.extend import core as jax_core
 
 from .._checks import check_solvable, is_concrete, prepare as _prepare
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
@@ -100,8 +104,46 @@ def _accelerations(L, q, qdot, t, force=None, *, fuse=None):
     """Unchecked core of `accelerations`: NaN where the mass matrix is degenerate.
 
     `fuse`: for n <= 2, compute `qddot`, `M` and `ok` in one XLA fusion
-    (`one_fusion`; default on, `False` turns it off; see below). Ignored for n > 2."""
+    (`one_fusion`; default on, `False` turns it off; see below). Ignored for n > 2.
 
+    Under a trace, the equations of one `(L, force, fuse)` at one set of shapes are
+    derived once and their jaxpr replayed after (`_replayed`): a solver traces its
+    vector field several times (diffrax: once per trace of its step and of its
+    checks), and deriving them again costs more than the rest of that tracing."""
+    build = lambda q, qdot, t: _derive(L, q, qdot, t, force, fuse)
+    return _replayed(build, (L, force, fuse), q, qdot, t)
+
+
+# Jaxprs of `_derive` per Lagrangian (dropped with it), then per (force, fuse, avals).
+_REPLAYS = weakref.WeakKeyDictionary()
+
+
+def _replayed(build, key, *args):
+    """`build(*args)`, from a jaxpr traced once per `key` and argument avals: under a
+    trace, where the key's Lagrangian can be held weakly and hashed and the jaxpr
+    closes over no tracer (one of an enclosing trace would not outlive it); else
+    `build` itself (eager calls, bound methods: a new object at each access)."""
+    L, *rest = key
+    if is_concrete(*args) or inspect.ismethod(L):
+        return build(*args)
+    try:
+        table = _REPLAYS.setdefault(L, {})
+        inner = (*rest, tuple(jax.typeof(x) for x in args))
+        found = table.get(inner)
+    except TypeError:
+        return build(*args)
+    if found is False:  # (closes over a tracer)
+        return build(*args)
+    if found is None:
+        closed, shape = jax.make_jaxpr(build, return_shape=True)(*args)
+        found = closed, jax.tree.structure(shape)
+        tracer = any(isinstance(c, jax.core.Tracer) for c in closed.consts)
+        table[inner] = False if tracer else found
+    closed, tree = found
+    return jax.tree.unflatten(tree, jax_core.jaxpr_as_fun(closed)(*args))
+
+
+def _derive(L, q, qdot, t, force, fuse):
     n = q.shape[0]
 
     def solve(q, qdot, t):

@@ -136,10 +136,10 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
     Returns the saved states `(B, T, 2n)` (`T` = the save times, then the end if
     `save_t1`), and per release the end time, the outcome and the step count.
 
-    Each lane carries its state as `(W, n)` arrays and its constants as one `(W, 5)`
-    array, and the queue is one table of packed rows: a refill is one gather and a
-    lane's results one scatter (each gather, scatter or small fusion is a separate
-    call per iteration on a CPU, and a scatter is a loop over its rows).
+    Each lane carries its state as `(W, n)` arrays and its time and constants as one
+    `(W, 6)` array, and the queue is one table of packed rows: a refill is one gather
+    and a lane's results one scatter (each gather, scatter or small fusion is a
+    separate call per iteration on a CPU, and a scatter is a loop over its rows).
     """
     B, n = q0.shape
     dtype = q0.dtype
@@ -156,12 +156,15 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
     system = System(f, zero, [q0[0], v0[0]], [zero + 1])
     stepper = SystemTaylorStepper(order=cfg.order, max_step=np.inf, system=system)
     sign = jnp.where(t1 >= t0, 1.0, -1.0).astype(dtype)
-    # One row per release: its state in its own time (q, sigma qdot), its start and
-    # end times sigma t0, sigma t1, sigma and its tolerances; one idle row at B.
-    S0, S1, SIGMA, RTOL, ATOL = range(5)
-    consts = jnp.stack([sign * t0, sign * t1, sign, rtol, atol], axis=1)
+    # One row per release: its state in its own time (q, sigma qdot), its start
+    # time sigma t0 as a sum of two floats (S0 + S0_LO, the low part 0 at release),
+    # its end time sigma t1, sigma and its tolerances; one idle row at B.
+    S0, S0_LO, S1, SIGMA, RTOL, ATOL = range(6)
+    consts = jnp.stack(
+        [sign * t0, jnp.zeros_like(t0), sign * t1, sign, rtol, atol], axis=1
+    )
     rows = jnp.concatenate([q0, sign[:, None] * v0, consts], axis=1)
-    idle = jnp.zeros((1, 2 * n + 5), dtype).at[0, 2 * n + SIGMA].set(1.0)
+    idle = jnp.zeros((1, 2 * n + 6), dtype).at[0, 2 * n + SIGMA].set(1.0)
     idle = idle.at[0, 2 * n + S1].set(1.0)
     table = jnp.concatenate([rows, idle])
     # The save times in each lane's own time: sigma ts[j].
@@ -175,19 +178,19 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
         x, v, p, ints, done, saves, ends, nxt = carry
         idx, j, steps = ints[:, 0], ints[:, 1], ints[:, 2]
         active = ~done
-        s = p[:, S0]
+        s, s_lo = p[:, S0], p[:, S0_LO]
         lane_field = LaneField(
             accel=lambda s, x, v: jax.tree.map(jnp.zeros_like, x), params=p[:, SIGMA]
         )
         # Never past the end, and at most one save time inside a step (the state
         # there read from the step's polynomials, inside its fusion).
-        cap = p[:, S1] - s
+        cap = to_end = (p[:, S1] - s) - s_lo
         if M:
-            after = jnp.where(j + 1 < M, taus(p, j + 1) - s, jnp.inf)
+            after = jnp.where(j + 1 < M, (taus(p, j + 1) - s) - s_lo, jnp.inf)
             cap = jnp.minimum(cap, after)
 
             def within(raw):
-                qs, ws = raw.expansion.at(taus(p, j) - s)
+                qs, ws = raw.expansion.at((taus(p, j) - s) - s_lo)
                 return eqx.tree_at(lambda r: r.extras, raw, (qs, ws), is_leaf=_none)
 
         else:
@@ -197,9 +200,13 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
             lane_field, s, cols(x), cols(v), cols(x), cap, p[:, RTOL], p[:, ATOL],
             free=active, cap=cap, within=within,
         )  # fmt: skip
-        t = s + step.h
-        end = active & (p[:, S1] - t <= 0)
+        # The time as a compensated sum (two floats): rounded once per step, it
+        # would drift by ~sqrt(steps) ulps, a phase error that no tolerance removes
+        # (heyoka.py keeps its time the same way).
+        t, t_lo = _two_sum(s, step.h + s_lo)
+        end = active & (step.h >= to_end)  # the step capped at the end time
         t = jnp.where(end, p[:, S1], t)
+        t_lo = jnp.where(end, 0.0, t_lo)
         x = jnp.where(active[:, None], jnp.stack(step.x, axis=1), x)
         v = jnp.where(active[:, None], jnp.stack(step.v, axis=1), v)
         steps = steps + active.astype(steps.dtype)
@@ -207,7 +214,7 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
             jnp.isfinite(x).all(1) & jnp.isfinite(v).all(1) & jnp.isfinite(step.error)
         )
         if M:
-            hit = active & (j < M) & (t - taus(p, j) >= 0)
+            hit = active & (j < M) & ((t - taus(p, j)) + t_lo >= 0)
             qs, ws = (jnp.stack(c, axis=1) for c in step.extras)
             ysave = jnp.concatenate([qs, p[:, SIGMA, None] * ws], axis=1)
             saves = saves.at[jnp.where(hit, idx, B), jnp.minimum(j, M - 1)].set(ysave)
@@ -227,7 +234,9 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
         x_new, v_new, p_new, idle = load(new_idx)
         x = jnp.where(finished[:, None], x_new, x)
         v = jnp.where(finished[:, None], v_new, v)
-        p = jnp.where(finished[:, None], p_new, p.at[:, S0].set(t))
+        p = jnp.where(
+            finished[:, None], p_new, p.at[:, S0].set(t).at[:, S0_LO].set(t_lo)
+        )
         zero = jnp.zeros_like(j)
         ints = jnp.stack(
             [new_idx, jnp.where(finished, zero, j), jnp.where(finished, zero, steps)],
@@ -257,6 +266,13 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
 
 def _none(x):
     return x is None
+
+
+def _two_sum(a, b):
+    """`(s, e)` with `s = fl(a + b)` and `s + e = a + b` exactly (Knuth's TwoSum)."""
+    s = a + b
+    b_virtual = s - a
+    return s, (a - (s - b_virtual)) + (b - b_virtual)
 
 
 @functools.cache

@@ -226,7 +226,11 @@ def simulate(
     if saveat is None:
         saveat = dfx.SaveAt(t1=True)
     eager = is_concrete(q0, qdot0, t0, t1, dt0)
+    # Under a trace the enclosing program compiles the solve: its body is traced in
+    # place, where a nested jit would be traced and then batched again under `vmap`.
     solve = dfx.diffeqsolve
+    if not eager:
+        solve = getattr(solve, "__wrapped__", solve)
     if eager and isinstance(solver, Taylor) and jax.default_backend() == "cpu":
         solve = elemental(dfx.diffeqsolve)
     sol = solve(
