@@ -443,3 +443,17 @@ def test_equations_of_a_lagrangian_closing_over_a_tracer():
         np.testing.assert_allclose(
             jax.jit(period_proxy)(g), -2 * g * np.sin(0.5), rtol=1e-15
         )
+
+
+def test_replayed_equations_serve_the_taylor_recurrences():
+    # The Taylor recurrences read the equations' jaxpr with `one_fusion` off: a jaxpr
+    # derived before for XLA (fusion on) must not be replayed to them.
+    L = lambda q, qdot, t: 0.5 * jnp.sum(qdot**2) - 0.5 * jnp.sum(q**2)
+    f = lagrax.vector_field(L)
+    y = (jnp.array([1.0]), jnp.array([0.0]))
+    t = jnp.zeros((), jnp.float64)  # (as the Taylor program traces it: not weak)
+    np.testing.assert_allclose(jax.jit(lambda y: f(t, y, None)[1])(y), [-1.0])
+    sol = lagrax.simulate_batch(
+        L, jnp.ones((2, 1)), jnp.zeros((2, 1)), 0.0, 2.0, rtol=1e-12, atol=1e-12
+    )
+    np.testing.assert_allclose(sol.ys[0][:, -1, 0], np.cos(2.0), rtol=1e-10)

@@ -25,7 +25,7 @@ from jax.extend import core as jax_core
 
 from .._checks import check_solvable, is_concrete, prepare as _prepare
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
-from .._jaxpr.fusion import one_fusion
+from .._jaxpr.fusion import fusion_is_off, one_fusion
 from .._jaxpr.scalarize import scalarized
 from .._taylor.solve import definite_solve
 
@@ -128,7 +128,8 @@ def _replayed(build, key, *args):
         return build(*args)
     try:
         table = _REPLAYS.setdefault(L, {})
-        inner = (*rest, tuple(jax.typeof(x) for x in args))
+        # (`fusion_off`, for tracers that read the jaxpr, changes what is traced.)
+        inner = (*rest, fusion_is_off(), tuple(jax.typeof(x) for x in args))
         found = table.get(inner)
     except TypeError:
         return build(*args)

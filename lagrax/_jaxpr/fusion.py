@@ -42,6 +42,11 @@ def fusion_off():
         _STATE.off = before
 
 
+def fusion_is_off() -> bool:
+    """Whether `one_fusion` is the identity here (inside `fusion_off`)."""
+    return getattr(_STATE, "off", False)
+
+
 def one_fusion(values: dict, *, branch_free: bool = False) -> dict:
     r"""The same arrays, computed by XLA in one loop over their entries.
 
@@ -72,7 +77,7 @@ def one_fusion(values: dict, *, branch_free: bool = False) -> dict:
 
     **Returns:** a dict with the same keys and equal values.
     """
-    if getattr(_STATE, "off", False):
+    if fusion_is_off():
         return dict(values)
     keys = list(values)
     fn = _fused_select if branch_free else _fused

@@ -136,7 +136,9 @@ class _Program:
             return False
         if name == "integer_pow":
             return True
-        return all(jnp.issubdtype(v.aval.dtype, jnp.inexact) for v in outvars)
+        # (Any floating output: a primitive whose float outputs depend on the state
+        # is a series even beside integer or boolean outputs, never a constant.)
+        return any(jnp.issubdtype(v.aval.dtype, jnp.inexact) for v in outvars)
 
     def _add(self, kind, prim, args, params, out_avals, series):
         try:
