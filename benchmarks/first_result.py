@@ -25,7 +25,9 @@ enable one are removed from the workers' environment), float64:
 - the tape path (`LAGRAX_TAPE_TIER=1`: L as data, one executable per machine kept
   in the library's own cache): a new Lagrangian (g = 1.3) in a fresh process with
   that cache empty (the executable compiled and written once), then in another
-  fresh process with it filled; and its steady state beside the specialized one.
+  fresh process with it filled; and its steady state beside the specialized one;
+  then 1000 amplitudes from the same cache (the same executable: the tape path runs
+  in pieces of one size).
 
     python benchmarks/first_result.py [--quick] [--core 1]
 
@@ -392,8 +394,12 @@ def main():
         env = dict(LAGRAX_TAPE_TIER="1", LAGRAX_CACHE_DIR=cache)
         out["tape_cold"] = spawn(c, "tape", env=env, n=4096)
         out["tape_warm"] = spawn(c, "tape", env=env, n=4096, repeat=True)
+        out["tape_other_n"] = spawn(c, "tape", env=env, n=1000)
+        out["tape_executables"] = sum(len(files) for _, _, files in os.walk(cache))
     print("tape path, cache empty", json.dumps(out["tape_cold"]))
     print("tape path, cache filled", json.dumps(out["tape_warm"]))
+    print("tape path, 1000 amplitudes", json.dumps(out["tape_other_n"]))
+    print("tape executables on disk", out["tape_executables"])
     if not args.quick:
         out["cli"] = cli_default_job(c)
         print("cli", json.dumps(out["cli"]))

@@ -91,21 +91,26 @@ def test_tape_path_agrees_with_the_specialized_sweep(monkeypatch, tmp_path):
 
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(tier, "_SWEPT", tier.collections.Counter())
+    monkeypatch.setattr(executables, "_LOADED", {})
+    stored = lambda: [p for p in tmp_path.rglob("*") if p.is_file()]
     q0 = jnp.linspace(0.05, 3.0, 96)
-    q1 = jnp.linspace(0.1, 0.9, 96)
+    q1 = jnp.linspace(0.1, 0.9, 40)
     well = asymmetric_well.lagrangian()
+    monkeypatch.delenv("LAGRAX_TAPE_TIER", raising=False)
     refs = [
         lagrax.sweep_periods(pendulum.lagrangian(), q0),
         lagrax.sweep_periods(well, q1, solver=lagrax.Taylor()),
     ]
+    assert stored() == [] and executables._LOADED == {}  # (off by default)
     monkeypatch.setenv("LAGRAX_TAPE_TIER", "1")
     taped = lagrax.sweep_periods(pendulum.lagrangian(), q0)
-    assert len(list(tmp_path.iterdir())) == 1  # the executable, on disk
-    # Another Lagrangian of the same sizes: the same executable, from disk (as in a
-    # new process: the table of loaded programs emptied).
+    assert len(stored()) == 1  # the executable, on disk
+    # Another Lagrangian of the same sizes and another number of amplitudes: the
+    # same executable, from disk (as in a new process: the table of loaded
+    # programs emptied).
     monkeypatch.setattr(executables, "_LOADED", {})
     other = lagrax.sweep_periods(well, q1, solver=lagrax.Taylor())
-    assert len(list(tmp_path.iterdir())) == 1
+    assert len(stored()) == 1 and len(executables._LOADED) == 1
     for res, ref in zip((taped, other), refs):
         np.testing.assert_array_equal(res.status, ref.status)
         np.testing.assert_allclose(res.periods, ref.periods, rtol=1e-13)
@@ -115,3 +120,17 @@ def test_tape_path_agrees_with_the_specialized_sweep(monkeypatch, tmp_path):
     hits = sweep_module._sweep_jit.cache_info().hits
     lagrax.sweep_periods(pendulum.lagrangian(), q0)
     assert sweep_module._sweep_jit.cache_info().hits == hits + 1
+
+
+def test_tape_tier_switch(monkeypatch):
+    monkeypatch.setattr(tier, "_SWEPT", tier.collections.Counter())
+    L_c, consts = canonical_lagrangian(pendulum.lagrangian(), f64)
+    args = (L_c, consts, lagrax.Taylor(), "config", jnp.linspace(0.1, 1.0, 8), 8)
+    for value in ("0", " "):
+        monkeypatch.setenv("LAGRAX_TAPE_TIER", value)
+        assert tier.choose(*args) is None
+    monkeypatch.setenv("LAGRAX_TAPE_TIER", "1")
+    assert tier.choose(*args) is not None and tier._SWEPT[(L_c, "config")] == 8
+    monkeypatch.setenv("LAGRAX_TAPE_TIER", "yes")
+    with pytest.raises(ValueError, match="LAGRAX_TAPE_TIER must be 0 or 1"):
+        lagrax.sweep_periods(pendulum.lagrangian(), jnp.linspace(0.1, 1.0, 8))

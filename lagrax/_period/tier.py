@@ -14,15 +14,17 @@ Taken only where nothing is traced (eager calls: under `jit`, `grad` or `vmap` t
 program being compiled is the caller's), the stepper is the Taylor step, and the
 Lagrangian's tapes can be built (scalar parameters, primitives with an opcode).
 
-Off unless `LAGRAX_TAPE_TIER=1`: each place the period program evaluates $L$
-inlines an interpreter (twelve: the step's coefficients, its end and its event in
-the loop; the release; three at the end of a leg; four in the far turning point's
-search; the mass check), each one interpreter over all the lanes and points it
-needs, and XLA compiles each on its own. Its one compile per machine (and tracing, three
-times the specialized program's) still costs more than a Lagrangian's specialized
-first sweep, and it runs tens of times slower per step (`benchmarks/first_result.py`
-measures both). Its results agree with the specialized program's to rounding, with
-the same statuses.
+Taken only with `LAGRAX_TAPE_TIER=1` (`0` or unset: never): each place the period
+program evaluates $L$ inlines an interpreter (twelve: the step's coefficients, its
+end and its event in the loop; the release; three at the end of a leg; four in the
+far turning point's search; the mass check), each one interpreter over all the lanes
+and points it needs, and XLA compiles each on its own. Its one compile per machine
+(and tracing, three times the specialized program's) costs more than a Lagrangian's
+specialized first sweep, and it runs tens of times slower per step
+(`benchmarks/first_result.py` measures both). The sweep runs on it in pieces of one
+size (`sweep.tape_piece`), so that one executable serves every number of amplitudes.
+Its results agree with the specialized program's to rounding, with the same
+statuses.
 """
 
 import collections
@@ -111,13 +113,23 @@ def _build(L_c, consts, dtype):
     return TapeLagrangian(sizes, P), tapes
 
 
+def enabled() -> bool:
+    """`LAGRAX_TAPE_TIER`: "1" (on), "0" or unset (off)."""
+    value = os.environ.get("LAGRAX_TAPE_TIER", "0").strip() or "0"
+    if value not in ("0", "1"):
+        raise ValueError(
+            f"The environment variable LAGRAX_TAPE_TIER must be 0 or 1; got {value!r}."
+        )
+    return value == "1"
+
+
 def choose(L_c, consts, solver, key, q0, n):
     """`(L, consts, stepper, solver)` of the tape path where this sweep takes it
     (module docstring), else None. `key`: the configuration, for counting the
     amplitudes swept with it. On the tape path a `Taylor` solver steps with Taylor
     wherever every primitive has a recurrence (the fallback, for programs too large
     to unroll in the specialized step, does not concern the interpreter)."""
-    if os.environ.get("LAGRAX_TAPE_TIER") != "1":
+    if not enabled():
         return None
     if not isinstance(solver, Taylor) or not _concrete((q0, consts)):
         return None
