@@ -247,14 +247,12 @@ def sweep_periods(
         # take no step, only their share of the work outside the loop.
         nan = np.full((), np.nan, dtype)
         piece = tape_piece(chunk_size, devices)
-        out = _in_pieces(run, q0, order, piece, progress, pad=nan)
-        useful = jnp.sum(out.steps)
+        out, useful = _in_pieces(run, q0, order, piece, progress, pad=nan)
     elif progress is None:
         out, useful = run(q0, order)
     else:
         size = max(chunk_size * len(devices) * 4, -(-n // 20))
-        out = _in_pieces(run, q0, order, size, progress)
-        useful = jnp.sum(out.steps)
+        out, useful = _in_pieces(run, q0, order, size, progress)
     return SweepResult(
         periods=out.periods,
         status=out.status,
@@ -268,13 +266,15 @@ def sweep_periods(
     )
 
 
-def _in_pieces(run, q0, order, size, progress, pad=None) -> Periods:
+def _in_pieces(run, q0, order, size, progress, pad=None) -> tuple[Periods, Array]:
     """The sweep in order, in pieces of one size (one compilation) padded with
     `pad` (default: the last release point), `progress` (if any) called after each;
-    back in input order. With NumPy where q0 is concrete: op-by-op jnp would compile
-    each operation on a first call."""
+    back in input order, with the total of the steps. With NumPy where q0 is
+    concrete, and `jax.device_put` to hand the results back: op-by-op jnp compiles
+    each operation (even `jnp.asarray`) on its first call, ~20 ms apiece."""
     n = q0.shape[0]
-    xp = jnp if isinstance(q0, jax.core.Tracer) else np
+    traced = isinstance(q0, jax.core.Tracer)
+    xp, device = (jnp, jnp.asarray) if traced else (np, jax.device_put)
     q_sorted = xp.asarray(q0)[order]
     pieces = -(-n // size)
     fill = q_sorted[-1] if pad is None else pad
@@ -283,22 +283,22 @@ def _in_pieces(run, q0, order, size, progress, pad=None) -> Periods:
     )
     outs = []
     for k in range(pieces):
-        piece = jnp.asarray(padded[k * size : (k + 1) * size])
+        piece = padded[k * size : (k + 1) * size]
         outs.append(run(piece, np.arange(size, dtype=np.int32))[0])
         if progress is not None:
             jax.block_until_ready(outs[-1])
             progress(min((k + 1) * size, n), n)
     inverse = np.argsort(order)
-    back = lambda f: jnp.asarray(
-        xp.concatenate([xp.asarray(f(o)) for o in outs])[:n][inverse]
+    joined = lambda f: xp.concatenate([xp.asarray(f(o)) for o in outs])[:n][inverse]
+    steps = joined(lambda o: o.steps)
+    out = Periods(
+        device(joined(lambda o: o.periods)),
+        device(joined(lambda o: o.status)),
+        device(steps),
+        device(sum(xp.asarray(o.executed) for o in outs)),
+        device(joined(lambda o: o.estimate)),
     )
-    return Periods(
-        back(lambda o: o.periods),
-        back(lambda o: o.status),
-        back(lambda o: o.steps),
-        sum(o.executed for o in outs),
-        back(lambda o: o.estimate),
-    )
+    return out, device(xp.sum(steps))
 
 
 def tape_piece(chunk_size, devices) -> int:
