@@ -7,14 +7,14 @@ serialize_executable`) and loaded in a fraction of a second after:
 - `call`: programs that do not depend on the Lagrangian (the tape path,
     `lagrax._period.tier`), keyed on the library's source, the static configuration
     and the arguments' shapes, without tracing anything: one executable serves every
-    Lagrangian.
+    Lagrangian (entries `t*.bin`).
 - `cached_call`: any compiled program of an eager call (the period sweep, the
     batched trajectories), keyed on the text of the lowered program itself (which
     holds everything it computes: a rebuilt Lagrangian with new parameter values that
     reach it as arguments lowers to the same text) and the compile options. A script
     run again, or a notebook restarted, traces and lowers its programs (a second or
     two) and loads them instead of compiling (~10 s for a first sweep on a CPU core),
-    as heyoka.py's on-disk cache of compiled code does.
+    as heyoka.py's on-disk cache of compiled code does (entries `p*.bin`).
 
 The library never touches JAX's global configuration (its persistent compilation
 cache stays the user's choice): this is its own cache, in `$LAGRAX_CACHE_DIR` or else
@@ -110,7 +110,7 @@ def _key(static, args) -> str:
             avals,
         )
     )
-    return hashlib.sha256(text.encode()).hexdigest()
+    return "t" + hashlib.sha256(text.encode()).hexdigest()
 
 
 def call(jitted, static, out_tree, *args):
