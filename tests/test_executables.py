@@ -129,3 +129,24 @@ def test_eviction_keeps_the_most_recently_used(tmp_path):
     assert (tmp_path / "notes.txt").exists()
     executables._evict(str(tmp_path), limit=1000)
     assert _files(tmp_path) == ["e2.bin", "e3.bin"]
+
+
+def test_a_sweeps_derivative_is_compiled_once_for_later_processes(cache):
+    import jax
+
+    folder, loads, new_process = cache
+    q0 = jnp.linspace(0.2, 2.0, 12)
+
+    def grad(g):
+        L = pendulum.lagrangian(g=g)
+        return jax.grad(lambda q: lagrax.sweep_periods(L, q, **SWEEP).periods.sum())(q0)
+
+    first = grad(1.3)
+    assert loads == [False] and len(_files(folder)) == 1  # (the derivative program)
+    new_process()
+    other = grad(2.0)
+    assert loads == [False, True] and len(_files(folder)) == 1
+    # dT/dq0 scales as T: g^(-1/2).
+    np.testing.assert_allclose(other, first * np.sqrt(1.3 / 2.0), rtol=1e-7)
+    exact = jax.grad(lambda q: pendulum.period(q, g=1.3).sum())(q0)
+    np.testing.assert_allclose(first, exact, rtol=1e-6)

@@ -23,7 +23,7 @@ from .._jaxpr.canonical import canonical_lagrangian
 from .._jaxpr.fusion import ELEMENTAL
 from .._results import status_message, SUCCESS
 from .._taylor.solver import Taylor
-from .autodiff import forward_mode, periods_diff, tangents_of
+from .autodiff import forward_jacobian, forward_mode, periods_diff, tangents_of
 from .device import Periods
 from .methods import Method
 from .options import check_options
@@ -336,9 +336,33 @@ def _sweep_call_jvp(L, m, devices, primals, tangents):
     elemental = is_concrete(q0, consts) and devices[0].platform == "cpu"
     jitted = _sweep_jit(L, m, devices, elemental)
     run = lambda q0, consts: jitted(q0, order, consts, *rest)
-    (out, useful), dT = forward_mode(run, q0, consts, tangents[0], tangents[2])
+    jacobian = None
+    if is_concrete(primals):
+        # The forward passes as one program of their own, through the library's
+        # disk cache of executables (`cached_call`): a later process loads it.
+        def jacobian(q0, consts, with_q, wanted):
+            jac = _jacobian_jit(L, m, devices, elemental, with_q, wanted)
+            options = ELEMENTAL if elemental else None
+            return executables.cached_call(jac, options, q0, order, consts, *rest)
+
+    (out, useful), dT = forward_mode(
+        run, q0, consts, tangents[0], tangents[2], jacobian
+    )
     no_tangent = np.zeros(np.shape(useful), jax.dtypes.float0)
     return (out, useful), (tangents_of(out, dT), no_tangent)
+
+
+@functools.lru_cache(maxsize=64)
+def _jacobian_jit(L, m, devices, elemental, with_q, wanted):
+    """`forward_jacobian` of the compiled sweep, compiled (`_sweep_call_jvp`); the
+    compiler options are the outer program's (a nested `jit` takes none)."""
+    jitted = _sweep_jit(L, m, devices)
+
+    def jacobian(q0, order, consts, *rest):
+        run = lambda q0, consts: jitted(q0, order, consts, *rest)
+        return forward_jacobian(run, q0, consts, with_q, wanted)
+
+    return jax.jit(jacobian, compiler_options=ELEMENTAL if elemental else None)
 
 
 _sweep_call.defjvp(_sweep_call_jvp, symbolic_zeros=True)
