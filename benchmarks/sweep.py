@@ -388,6 +388,9 @@ def work_jax(args):
 
 
 def work_gpu(args):
+    """The defaults' sweep and two kernels alone on the default backend (a GPU), at
+    `--gpu-sizes` amplitudes and `--gpu-widths` lanes; each row printed as it is
+    measured, and rows skipped once `--budget` seconds have passed."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -400,35 +403,35 @@ def work_gpu(args):
     L = pendulum.lagrangian()
     rows = []
     device = str(jax.devices()[0].device_kind)
+    start = time.perf_counter()
+    configs = (
+        ("defaults", {}),  # the defaults' work: matched, Taylor, the estimate
+        ("Taylor matched", dict(solver=lagrax.Taylor(), error_estimate=False)),
+        ("Dopri8 quarter", dict(solver=dfx.Dopri8(), method="quarter")),
+    )
     for n in args.gpu_sizes:
         a_np = _amplitudes(n)
         a = jnp.asarray(a_np)
         exact = _exact(a_np)
-        for method, solver, estimate in (
-            ("quarter", dfx.Dopri8(), False),
-            ("matched", dfx.Dopri8(), False),
-            ("quarter", lagrax.Taylor(), False),
-            ("matched", lagrax.Taylor(), False),
-            ("matched", lagrax.Taylor(), True),  # the defaults' work (+ estimate)
-        ):
-            for width in (4096, 65536):
-                run = lambda: lagrax.sweep_periods(
-                    L,
-                    a,
-                    method=method,
-                    chunk_size=width,
-                    error_estimate=estimate,
-                    solver=solver,
-                )
+        for label, kw in configs:
+            for width in args.gpu_widths:
+                if width > max(n, min(args.gpu_widths)):
+                    continue
+                if time.perf_counter() - start > args.budget:
+                    print(
+                        f"budget spent: {label} n={n} width={width} skipped",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                    continue
+                run = lambda: lagrax.sweep_periods(L, a, chunk_size=width, **kw)
                 t0 = time.perf_counter()
                 jax.block_until_ready(run())
                 compile_s = time.perf_counter() - t0
-                res, sec = _best(run, 3)
+                res, sec = _best(run, args.repeats)
                 rows.append(
                     _row(
-                        f"lagrax {type(solver).__name__} {method}"
-                        f"{' + estimate' if estimate else ''} n={n} "
-                        f"width={width} on {device}",
+                        f"lagrax {label} n={n} width={width} on {device}",
                         res.periods,
                         exact,
                         sec,
@@ -436,7 +439,7 @@ def work_gpu(args):
                         useful_fraction=float(res.useful_fraction),
                     )
                 )
-                print(rows[-1], flush=True)
+                print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     return rows
 
 
@@ -512,6 +515,10 @@ def main():
         nargs="+",
         default=[10_000, 100_000, 1_000_000],
         help="amplitudes per --gpu sweep (a small one checks the mode on a CPU)",
+    )
+    p.add_argument("--gpu-widths", type=int, nargs="+", default=[65536, 262144])
+    p.add_argument(
+        "--budget", type=float, default=float("inf"), help="--gpu: seconds, then stop"
     )
     p.add_argument("--worker")
     p.add_argument("--mode", default="scalar")
@@ -596,6 +603,9 @@ def main():
     )
     if reference is not None:
         meta["heyoka_reference"] = reference["source"]
+    if args.gpu:
+        meta["device"] = str(jax.devices()[0].device_kind)
+        meta["date"] = time.strftime("%Y-%m-%d")
     with open(os.path.join(RESULTS, name), "w") as fh:
         json.dump(dict(meta=meta, results=rows), fh, indent=2)
     if args.gpu:

@@ -441,9 +441,10 @@ def _lagrax_lagrangian(system):
     )
 
 
-def _lagrax_methods(quick, n=2):
+def _lagrax_methods(quick, n=2, width=256):
     """name -> a function `(L, q0, qdot0, tol) -> (q1, qdot1, steps)` for one
-    trajectory (vmapped and jitted by the caller)."""
+    trajectory (vmapped and jitted by the caller); `simulate_batch` over `width`
+    lanes."""
     import diffrax as dfx
 
     import lagrax
@@ -487,6 +488,7 @@ def _lagrax_methods(quick, n=2):
                 atol=tol,
                 max_steps=1 << 16,
                 throw=False,
+                width=width,
             )
             q1, qdot1 = (x[:, -1] for x in sol.ys)
             return q1, qdot1, sol.stats["num_steps"]
@@ -718,41 +720,82 @@ def work_accelerations(args):
 
 
 def work_gpu(args):
-    """lagrax only, 1e4-1e6 double-pendulum trajectories on the default backend; the
-    error against a Dopri8 run at rtol 1e-14 of the first 1024 (no heyoka.py there)."""
+    """lagrax alone on the default backend (a GPU; heyoka.py is not there): the
+    double pendulum's releases (the first 1024 are the CPU run's, so their error is
+    measured against its 80-bit reference), each method at the tolerances the
+    committed CPU run chose per bound (`results/trajectories.json`, one core); the
+    first call (compile), trajectories/s (best of `--repeats`), the error of the first
+    1024. Rows printed as measured; rows skipped once `--budget` seconds have passed."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
     import numpy as np
 
-    L = _lagrax_lagrangian("double_pendulum")
-    methods = _lagrax_methods(False)
+    system = "double_pendulum"
+    args.system = system
+    spec = SYSTEMS[system]
+    ref = np.asarray(json.loads(args.reference_json)) if args.reference_json else None
+    with open(os.path.join(RESULTS, "trajectories.json")) as fh:
+        cpu = json.load(fh)["systems"][system]["rows"]
+    chosen = {}
+    for row in cpu:
+        if row["where"] == "1 core" and row["name"].startswith("lagrax"):
+            chosen.setdefault(row["name"], {})[row["bound"]] = row["tol"]
+    L = _lagrax_lagrangian(system)
     device = str(jax.devices()[0].device_kind)
-    rows = []
+    rows, start = [], time.perf_counter()
     for count in args.gpu_sizes:
-        rng = np.random.default_rng(0)
-        q0 = jnp.asarray(rng.uniform(-1, 1, (count, 2)))
+        rng = np.random.default_rng(20261125)  # as `_initial`: the same first rows
+        q0_np = rng.uniform(-spec["spread"], spec["spread"], (count, spec["n"]))
+        q0 = jnp.asarray(q0_np)
         v0 = jnp.zeros_like(q0)
+        width = min(count, args.gpu_width)
+        methods = _lagrax_methods(False, spec["n"], width=width)
         for name, one in methods.items():
+            if name not in chosen or (
+                args.methods and not any(m in name for m in args.methods)
+            ):
+                continue
+            if time.perf_counter() - start > args.budget:
+                print(f"budget spent: {name} n={count} skipped", file=sys.stderr)
+                continue
             if getattr(one, "batched", False):
                 fn = lambda q, v, tol, one=one: one(L, q, v, tol)
             else:
                 fn = _vmapped(one, L, jax.devices()[:1])
-            t = time.perf_counter()
-            jax.block_until_ready(fn(q0, v0, 1e-10))
-            compile_s = time.perf_counter() - t
-            _, sec = _best(lambda: jax.block_until_ready(fn(q0, v0, 1e-10)), 2)
-            rows.append(
-                dict(
-                    name=f"{name} n={count} on {device}",
-                    trajectories_per_s=count / sec,
-                    compile_s=compile_s,
-                    tol=1e-10,
-                )
+            call = lambda tol, fn=fn: jax.block_until_ready(
+                fn(q0, v0, jnp.asarray(tol))
             )
-            print(rows[-1], flush=True)
-    return dict(rows=rows, curves={})
+            t = time.perf_counter()
+            call(1e-9)
+            compile_s = time.perf_counter() - t
+            for bound, tol in sorted(chosen[name].items(), reverse=True):
+                out, sec = _best(lambda: call(tol), args.repeats)
+                q1, v1, steps = (np.asarray(x) for x in out)
+                ys = np.concatenate([q1, v1], axis=1)
+                head = ys[: len(ref)] if ref is not None else None
+                err = (
+                    float(np.max(np.abs(head - ref)))
+                    if head is not None and np.isfinite(head).all()
+                    else None
+                )
+                rows.append(
+                    dict(
+                        name=f"{name} n={count} on {device}",
+                        trajectories_per_s=count / sec,
+                        seconds=sec,
+                        compile_s=compile_s,
+                        bound=bound,
+                        tol=tol,
+                        max_error_first_1024=err,
+                        failed=int((~np.isfinite(ys).all(axis=1)).sum()),
+                        steps_per_trajectory=float(np.mean(steps)),
+                        width=width if getattr(one, "batched", False) else None,
+                    )
+                )
+                print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    return dict(rows=rows, curves={}, device=device, date=time.strftime("%Y-%m-%d"))
 
 
 # ----------------------------------------------------------------------------- main
@@ -855,6 +898,12 @@ def main():
     p.add_argument(
         "--gpu-sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000]
     )
+    p.add_argument(
+        "--gpu-width", type=int, default=1 << 17, help="simulate_batch lanes"
+    )
+    p.add_argument(
+        "--budget", type=float, default=float("inf"), help="--gpu: seconds, then stop"
+    )
     p.add_argument("--systems", nargs="+", default=None, choices=list(SYSTEMS))
     p.add_argument("--where", nargs="+", default=["core", "machine"])
     p.add_argument(
@@ -890,6 +939,7 @@ def main():
     args = p.parse_args()
     if args.worker:
         args.where = args.where[0]
+        args.reference_json = None
         if args.reference_file:
             with open(args.reference_file) as fh:
                 args.reference_json = json.dumps(json.load(fh)["ys"])
@@ -905,13 +955,15 @@ def main():
         return
     os.makedirs(RESULTS, exist_ok=True)
     if args.gpu:
-        out = spawn(
-            "gpu",
-            args,
-            "double_pendulum",
-            "machine",
-            extra=["--gpu-sizes", *map(str, args.gpu_sizes)],
-        )
+        extra = ["--gpu-sizes", *map(str, args.gpu_sizes)]
+        extra += ["--gpu-width", str(args.gpu_width), "--budget", str(args.budget)]
+        extra += ["--methods", *args.methods] if args.methods else []
+        path = os.path.join(args.cache, f"double_pendulum_tol{REFERENCE_TOL:g}.json")
+        ref = None
+        if os.path.exists(path):  # the CPU run's 80-bit reference, where it is here
+            with open(path) as fh:
+                ref = json.load(fh)
+        out = spawn("gpu", args, "double_pendulum", "machine", ref, extra)
         with open(os.path.join(RESULTS, "trajectories_gpu.json"), "w") as fh:
             json.dump(out, fh, indent=1)
         return
