@@ -65,4 +65,7 @@ from ._trajectory.term import LagrangianTerm as LagrangianTerm
 from ._trajectory.variational import VariationalMidpoint as VariationalMidpoint
 
 
-__version__ = _metadata.version("lagrax")
+try:
+    __version__ = _metadata.version("lagrax")
+except _metadata.PackageNotFoundError:  # a source tree on sys.path, not installed
+    __version__ = "0+unknown"
