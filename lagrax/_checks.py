@@ -171,6 +171,20 @@ def positive_int(x, name: str, *, minimum: int = 1) -> int:
     return int(x)
 
 
+def lane_count(
+    value, name: str, devices, per_device: int, *, cpu: int, accelerator: int
+):
+    """The lanes per device of a compiled loop: `value` checked, or by default `cpu`
+    on a CPU and, on an accelerator, enough for every item of a device's share up
+    to `accelerator` (a GPU needs 10^4 to 10^5 lanes in flight; 256 leaves it
+    mostly idle)."""
+    if value is not None:
+        return positive_int(value, name)
+    if devices[0].platform == "cpu":
+        return cpu
+    return max(1, min(int(per_device), accelerator))
+
+
 def warn_if_below_eps(rtol, dtype, *, stacklevel: int = 2):
     """Warns when a concrete `rtol` is finer than the machine epsilon of `dtype`.
 

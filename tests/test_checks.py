@@ -108,3 +108,30 @@ def test_out_of_range_index_in_control_flow_is_an_error(name):
     # On as many coordinates as it indexes: E = T + V, V = 1 + 4 + 9 (or 9).
     E = lagrax.energy(L, jnp.array([1.0, 2.0, 3.0]), jnp.ones(3))
     np.testing.assert_allclose(E, 1.5 + (9.0 if name == "cond" else 14.0))
+
+
+class _Accelerator:
+    platform = "gpu"
+
+
+def test_lanes_default_by_backend():
+    # A CPU gets its own default whatever the batch; an accelerator every item of a
+    # device's share up to its cap; a given value is checked and kept.
+    from lagrax._checks import lane_count
+
+    cpu, gpu = jax.devices("cpu"), (_Accelerator(),)
+    kw = dict(cpu=256, accelerator=1 << 17)
+    assert lane_count(None, "width", cpu, 10**6, **kw) == 256
+    assert lane_count(None, "width", gpu, 10**4, **kw) == 10**4
+    assert lane_count(None, "width", gpu, 10**6, **kw) == 1 << 17
+    assert lane_count(7, "width", gpu, 10**6, **kw) == 7
+    with pytest.raises(ValueError, match="`width`"):
+        lane_count(0, "width", cpu, 10, **kw)
+
+
+def test_sweep_runs_its_default_lanes_on_a_cpu():
+    res = lagrax.sweep_periods(
+        pendulum.lagrangian(), jnp.linspace(0.1, 1.0, 3), method="quarter"
+    )
+    assert res.chunk_size == 256
+    assert np.isfinite(np.asarray(res.periods)).all()

@@ -71,7 +71,13 @@ class Blocks:
 
         self.writer = jax.process_index() == 0
         # A sweep smaller than one chunk per device would mostly run padding.
-        self.chunk_size = min(args.chunk_size, -(-args.count // len(devices)))
+        from .._checks import lane_count
+
+        share = -(-args.count // len(devices))
+        self.chunk_size = lane_count(
+            args.chunk_size, "chunk_size", devices, share, cpu=128, accelerator=1 << 18
+        )
+        self.chunk_size = min(self.chunk_size, share)
         self.block = self.chunk_size * len(devices) * BLOCK_CHUNKS
         self.count = args.count
         self.n_blocks = {t.name: -(-args.count // self.block) for t in targets}

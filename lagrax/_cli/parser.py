@@ -125,9 +125,10 @@ def parser():
     s.add_argument(
         "--chunk-size",
         type=int,
-        default=128,
-        help="lanes per compiled batch and device (default 128: where the step "
-        "counts climb steeply towards a hump, bigger chunks leave more lanes idle)",
+        default=None,
+        help="lanes per compiled batch and device (default 128 on a CPU: where the "
+        "step counts climb steeply towards a hump, bigger chunks leave more lanes "
+        "idle; on a GPU every amplitude of a device's share, up to 262144)",
     )
     s.add_argument(
         "--devices",
@@ -229,7 +230,7 @@ def validate(args):
         return
     if args.count < 1:
         raise UsageError(f"--count must be a positive integer; got {args.count}")
-    if args.chunk_size < 1:
+    if args.chunk_size is not None and args.chunk_size < 1:
         raise UsageError(f"--chunk-size must be positive; got {args.chunk_size}")
     if args.rows < 0:
         raise UsageError(f"--rows must be >= 0; got {args.rows}")

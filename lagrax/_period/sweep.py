@@ -16,7 +16,7 @@ from .._checks import (
     check_callable,
     check_devices,
     is_concrete,
-    positive_int,
+    lane_count,
 )
 from .._jaxpr.canonical import canonical_lagrangian
 from .._jaxpr.fusion import ELEMENTAL
@@ -57,7 +57,7 @@ def sweep_periods(
     t_max=None,
     energy_tol=None,
     method: str = "matched",
-    chunk_size: int = 256,
+    chunk_size: int | None = None,
     sort: bool = True,
     devices=None,
     progress: Callable[[int, int], None] | None = None,
@@ -132,10 +132,12 @@ def sweep_periods(
     - `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in `period`
         (the same for every lane).
     - `chunk_size`: lanes stepping together per device (static: changing it compiles
-        anew). 256 suits a CPU core: on the pendulum (1024 to 65,536 amplitudes; the
-        defaults, Taylor and Dopri8 "quarter") it is the fastest of 128 to 2048 or
-        close to it. A GPU needs far more lanes in flight (10^4 to 10^5 per device;
-        `benchmarks/sweep.py --gpu` times 4096 and 65,536).
+        anew). By default 256 on a CPU: on the pendulum (1024 to 65,536 amplitudes;
+        the defaults, Taylor and Dopri8 "quarter") the fastest of 128 to 2048 or
+        close to it. On a GPU by default every amplitude of a device's share, up to
+        262,144 lanes: it needs far more lanes in flight (an H200, 10^6 amplitudes
+        at the defaults: 49.8 M periods/s with 65,536 lanes, 61.5 M/s with 262,144;
+        `benchmarks/sweep.py --gpu`).
     - `error_estimate`: compute the per-lane error estimate (see above).
     - `sort`: run the lanes in order of decreasing |q0| (default True; the outputs
         stay in input order). The queue needs no sorted input to keep lanes busy,
@@ -202,8 +204,11 @@ def sweep_periods(
     opts = check_options(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
-    chunk_size = positive_int(chunk_size, "chunk_size")
     devices = check_devices(jax.devices() if devices is None else devices)
+    per_device = -(-q0.shape[0] // len(devices))
+    chunk_size = lane_count(
+        chunk_size, "chunk_size", devices, per_device, cpu=256, accelerator=1 << 18
+    )
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
     dtype = q0.dtype
