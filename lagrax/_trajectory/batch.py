@@ -430,12 +430,38 @@ def simulate_batch(
         args = tuple(
             jnp.concatenate([a, jnp.repeat(a[-1:], D - B % D, 0)]) for a in args
         )
-    ys, tend, code, nsteps = _compiled(cpu, devices[:D])(cfg, *args, ts_arr)
+    out = _compiled(cpu, devices[:D])(cfg, *args, ts_arr)
+    ts_out, qs, vs, result, nsteps, zeros = _assemble(
+        B, q0.shape[1], ts is not None, save_t1, *out, ts_arr
+    )
+    sol = dfx.Solution(
+        t0=t0,
+        t1=t1,
+        ts=ts_out,
+        ys=(qs, vs),
+        interpolation=None,
+        stats=dict(
+            num_steps=nsteps,
+            num_accepted_steps=nsteps,
+            num_rejected_steps=zeros,
+            max_steps=max_steps,
+        ),
+        result=result,
+        solver_state=None,
+        controller_state=None,
+        made_jump=None,
+        event_mask=None,
+    )
+    return _raise_if_failed(sol, throw)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
+def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, ts_arr):
+    """The loop's outputs as a `Solution`'s arrays, in one compiled call (op by op,
+    ~5 ms a call: a tenth of a 64-release batch)."""
     ys, tend, code, nsteps = ys[:B], tend[:B], code[:B], nsteps[:B]
-    n = q0.shape[1]
-    qs, vs = ys[..., :n], ys[..., n:]
     times = []
-    if ts is not None:
+    if has_ts:
         times.append(jnp.broadcast_to(ts_arr, (B, ts_arr.shape[0])))
     if save_t1:
         times.append(tend[:, None])
@@ -446,27 +472,18 @@ def simulate_batch(
         R.successful,
         R.where(c == _MAX_STEPS, R.max_steps_reached, R.nonfinite),
     )
-    result = jax.vmap(outcome)(code)
     ok = (code == _DONE)[:, None, None]
-    sol = dfx.Solution(
-        t0=t0,
-        t1=t1,
-        ts=jnp.concatenate(times, axis=1),
-        ys=(jnp.where(ok, qs, jnp.nan), jnp.where(ok, vs, jnp.nan)),
-        interpolation=None,
-        stats=dict(
-            num_steps=nsteps,
-            num_accepted_steps=nsteps,
-            num_rejected_steps=jnp.zeros_like(nsteps),
-            max_steps=max_steps,
-        ),
-        result=result,
-        solver_state=None,
-        controller_state=None,
-        made_jump=None,
-        event_mask=None,
+    qs = jnp.where(ok, ys[..., :n], jnp.nan)
+    vs = jnp.where(ok, ys[..., n:], jnp.nan)
+    result = jax.vmap(outcome)(code)
+    return (
+        jnp.concatenate(times, axis=1),
+        qs,
+        vs,
+        result,
+        nsteps,
+        jnp.zeros_like(nsteps),
     )
-    return _raise_if_failed(sol, throw)
 
 
 def _positive(x, name, dtype):
