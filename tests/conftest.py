@@ -4,6 +4,11 @@ import jax
 import pytest
 
 
+# The library's disk cache of executables (`lagrax._executables`) off, unless a test
+# turns it on: tests compile what they check, and write nothing outside their
+# temporary folders.
+os.environ["LAGRAX_CACHE_DIR"] = ""
+
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import lagrax
+from lagrax import _executables as executables
 from lagrax._jaxpr.canonical import canonical_lagrangian
-from lagrax._period import executables, tier
+from lagrax._period import tier
 from lagrax._period.mechanics import AutodiffMechanics
 from lagrax._taylor.program import taylor_coefficients
 from lagrax._taylor.tape import build_tape, tape_coefficients, tape_series

@@ -33,6 +33,7 @@ from .._checks import (
     positive_scalar,
 )
 from .._custom_types import GeneralizedForce, Lagrangian
+from .._executables import cached_call
 from .._jaxpr.fusion import ELEMENTAL
 from .._stepper.base import LaneField
 from .._stepper.taylor import TaylorStepper
@@ -419,7 +420,13 @@ def simulate_batch(
         args = tuple(
             jnp.concatenate([a, jnp.repeat(a[-1:], D - B % D, 0)]) for a in args
         )
-    ys, tend, code, nsteps = _compiled(cpu, devices[:D])(cfg, *args, ts_arr)
+    jitted = _compiled(cpu, devices[:D])
+    if is_concrete(args, ts_arr):  # (a later process loads it from disk)
+        options = ELEMENTAL if cpu else None
+        out = cached_call(jitted, options, cfg, *args, ts_arr, n_static=1)
+    else:
+        out = jitted(cfg, *args, ts_arr)
+    ys, tend, code, nsteps = out
     ys, tend, code, nsteps = ys[:B], tend[:B], code[:B], nsteps[:B]
     n = q0.shape[1]
     qs, vs = ys[..., :n], ys[..., n:]

@@ -1,0 +1,229 @@
+"""Compiled programs kept on disk by the library, so that a later process does not
+compile them again.
+
+Two kinds of entry, each compiled once, serialized (`jax.experimental.
+serialize_executable`) and loaded in a fraction of a second after:
+
+- `call`: programs that do not depend on the Lagrangian (the tape path,
+    `lagrax._period.tier`), keyed on the library's source, the static configuration
+    and the arguments' shapes, without tracing anything: one executable serves every
+    Lagrangian (entries `t*.bin`).
+- `cached_call`: any compiled program of an eager call (the period sweep, the
+    batched trajectories), keyed on the text of the lowered program itself (which
+    holds everything it computes: a rebuilt Lagrangian with new parameter values that
+    reach it as arguments lowers to the same text) and the compile options. A script
+    run again, or a notebook restarted, traces and lowers its programs (a second or
+    two) and loads them instead of compiling (~10 s for a first sweep on a CPU core),
+    as heyoka.py's on-disk cache of compiled code does (entries `p*.bin`).
+
+The library never touches JAX's global configuration (its persistent compilation
+cache stays the user's choice): this is its own cache, in `$LAGRAX_CACHE_DIR` or else
+`$XDG_CACHE_HOME/lagrax/executables` (`~/.cache/...`); `LAGRAX_CACHE_DIR=""` turns
+it off; so does running as one of several processes (`jax.distributed`), where an
+executable belongs to one process's devices. Every key also holds the JAX and jaxlib
+versions, `XLA_FLAGS`, the devices and the host CPU (an executable is native code
+for one processor). An entry that cannot be read is compiled again; past
+`MAX_BYTES` the least recently used entries are removed.
+"""
+
+import collections
+import functools
+import hashlib
+import os
+import pickle
+import tempfile
+
+import jax
+from jax.experimental import serialize_executable
+
+
+# Compiled programs of this process: by key (`call`), and by program and argument
+# types (`cached_call`), most recently used last.
+_LOADED: dict = {}
+_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
+_MAX_PROGRAMS = 64
+# The most the cache folder holds (bytes); a sweep's executable is ~2 MB.
+MAX_BYTES = 1 << 30
+
+
+def cache_dir() -> str | None:
+    """Where executables are kept, or None when the cache is off."""
+    env = os.environ.get("LAGRAX_CACHE_DIR")
+    if env is not None:
+        return env or None
+    base = os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache"))
+    return os.path.join(base, "lagrax", "executables")
+
+
+@functools.lru_cache(maxsize=1)
+def _source_digest() -> str:
+    """A digest of the library's source: an executable compiled by other code is
+    never loaded."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    h = hashlib.sha256()
+    for folder, dirs, files in sorted(os.walk(root)):
+        dirs.sort()
+        for name in sorted(files):
+            if name.endswith(".py"):
+                path = os.path.join(folder, name)
+                h.update(os.path.relpath(path, root).encode())
+                with open(path, "rb") as fh:
+                    h.update(fh.read())
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _host() -> str:
+    """The processor the native code is compiled for: its model and features."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            lines = [ln for ln in fh if ln.startswith(("model name", "flags"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        import platform
+
+        return platform.processor() + platform.machine()
+
+
+def _environment():
+    devices = [(d.platform, d.device_kind, d.id) for d in jax.devices()]
+    return (
+        jax.__version__,
+        jax.lib.__version__,
+        os.environ.get("XLA_FLAGS", ""),
+        devices,
+        _host(),
+    )
+
+
+def _key(static, args) -> str:
+    avals = [
+        (getattr(x, "shape", ()), str(jax.numpy.result_type(x)))
+        for x in jax.tree.leaves(args)
+    ]
+    text = repr(
+        (
+            _source_digest(),
+            _environment(),
+            repr(static),
+            jax.tree.structure(args),
+            avals,
+        )
+    )
+    return "t" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def call(jitted, static, out_tree, *args):
+    """`jitted(*args)` through an executable compiled once per machine: from this
+    process's table, else from disk, else compiled (and written to disk).
+    `static`: what besides the arguments' shapes determines the program (its
+    `repr` must say it all); `out_tree`: the structure of its outputs (a pytree
+    definition does not survive pickling: an `equinox.Module`'s holds sentinels)."""
+    if jax.process_count() > 1:  # (an executable of one process's devices)
+        return jitted(*args)
+    key = _key(static, args)
+    compiled = _LOADED.get(key)
+    if compiled is None:
+        in_tree = jax.tree.structure((args, {}))
+        compiled = _load(key, in_tree, out_tree)
+        if compiled is None:
+            compiled = jitted.lower(*args).compile()
+            _store(key, compiled)
+        _LOADED[key] = compiled
+    return compiled(*args)
+
+
+def _signature(x):
+    """What the lowering of `x` depends on (cheap: this runs on every call)."""
+    dtype = getattr(x, "dtype", None)
+    if dtype is None:  # a Python scalar
+        return type(x)
+    return (
+        x.shape,
+        dtype,
+        getattr(x, "weak_type", False),
+        getattr(x, "sharding", None),
+    )
+
+
+def cached_call(jitted, options, *args, n_static=0):
+    """`jitted(*args)` (all of `args` concrete; the first `n_static` are `jitted`'s
+    static arguments) through the executable of its lowered program: from this
+    process's table, else from disk, else compiled and written to disk.
+    `options`: the `compiler_options` `jitted` was made with (they are not in the
+    lowered text)."""
+    static, dynamic = args[:n_static], args[n_static:]
+    leaves, treedef = jax.tree.flatten(dynamic)
+    program = (jitted, static, treedef, tuple(_signature(x) for x in leaves))
+    compiled = _PROGRAMS.get(program)
+    if compiled is None:
+        if cache_dir() is None or jax.process_count() > 1:
+            return jitted(*args)
+        lowered = jitted.lower(*args)
+        text = repr((_environment(), repr(options), lowered.as_text()))
+        key = "p" + hashlib.sha256(text.encode()).hexdigest()
+        compiled = _load(key, lowered.in_tree, lowered.out_tree)
+        if compiled is None:
+            compiled = lowered.compile()
+            _store(key, compiled)
+        _PROGRAMS[program] = compiled
+        if len(_PROGRAMS) > _MAX_PROGRAMS:
+            _PROGRAMS.popitem(last=False)
+    else:
+        _PROGRAMS.move_to_end(program)
+    return compiled(*dynamic)
+
+
+def _path(key):
+    folder = cache_dir()
+    return None if folder is None else os.path.join(folder, key + ".bin")
+
+
+def _load(key, in_tree, out_tree):
+    path = _path(key)
+    if path is None or not os.path.exists(path):
+        return None
+    try:
+        with open(path, "rb") as fh:
+            payload = pickle.load(fh)
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        os.utime(path)  # (recently used: kept longest)
+        return compiled
+    except Exception:  # noqa: BLE001 -- a damaged or stale entry: compile again
+        return None
+
+
+def _store(key, compiled):
+    path = _path(key)
+    if path is None:
+        return
+    try:
+        payload = serialize_executable.serialize(compiled)[0]
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
+        with os.fdopen(fd, "wb") as fh:
+            pickle.dump(payload, fh)
+        os.replace(tmp, path)
+        _evict(os.path.dirname(path))
+    except Exception:  # noqa: BLE001 -- a read-only or full disk, or a program that
+        return  # cannot be serialized (host callbacks): kept in memory only
+
+
+def _evict(folder, limit=None):
+    """Removes the least recently used entries until the folder holds at most
+    `limit` (default `MAX_BYTES`) bytes."""
+    limit = MAX_BYTES if limit is None else limit
+    entries = []
+    for e in os.scandir(folder):
+        if e.name.endswith(".bin") and e.is_file():
+            st = e.stat()
+            entries.append((st.st_mtime, st.st_size, e.path))
+    total = sum(size for _, size, _ in entries)
+    for _, size, path in sorted(entries):
+        if total <= limit:
+            break
+        try:
+            os.remove(path)
+            total -= size
+        except OSError:
+            pass
