@@ -24,6 +24,14 @@ executable belongs to one process's devices. Every key also holds the JAX and ja
 versions, `XLA_FLAGS`, the devices and the host CPU (an executable is native code
 for one processor). An entry that cannot be read is compiled again; past
 `MAX_BYTES` the least recently used entries are removed.
+
+Only an executable compiled by this process is written: one that JAX took from its
+own persistent compilation cache (`jax_compilation_cache_dir`) serializes again
+without its object code on CPU, and XLA loads that without complaint, to fail at
+its first kernel (`NOT_FOUND: Function ... not found`). As a safety net, the first
+call of an executable loaded from disk waits for its result: where it fails, the
+entry is removed and the program compiled, written and run again (no program here
+donates its inputs, so the second run sees the same arguments).
 """
 
 import collections
@@ -32,13 +40,15 @@ import hashlib
 import os
 import pickle
 import tempfile
+import threading
 
 import jax
 from jax.experimental import serialize_executable
 
 
 # Compiled programs of this process: by key (`call`), and by program and argument
-# types (`cached_call`), most recently used last.
+# types (`cached_call`), most recently used last; each as (executable, the key of
+# the disk entry it was loaded from until its first call has run, else None).
 _LOADED: dict = {}
 _PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 _MAX_PROGRAMS = 64
@@ -122,15 +132,14 @@ def call(jitted, static, out_tree, *args):
     if jax.process_count() > 1:  # (an executable of one process's devices)
         return jitted(*args)
     key = _key(static, args)
-    compiled = _LOADED.get(key)
-    if compiled is None:
+    if key not in _LOADED:
         in_tree = jax.tree.structure((args, {}))
         compiled = _load(key, in_tree, out_tree)
-        if compiled is None:
-            compiled = jitted.lower(*args).compile()
-            _store(key, compiled)
-        _LOADED[key] = compiled
-    return compiled(*args)
+        if compiled is not None:
+            _LOADED[key] = (compiled, key)
+        else:
+            _LOADED[key] = (_compile(key, jitted.lower(*args)), None)
+    return _run(_LOADED, key, jitted, args, args)
 
 
 def _signature(x):
@@ -155,28 +164,83 @@ def cached_call(jitted, options, *args, n_static=0):
     static, dynamic = args[:n_static], args[n_static:]
     leaves, treedef = jax.tree.flatten(dynamic)
     program = (jitted, static, treedef, tuple(_signature(x) for x in leaves))
-    compiled = _PROGRAMS.get(program)
-    if compiled is None:
+    if program not in _PROGRAMS:
         if cache_dir() is None or jax.process_count() > 1:
             return jitted(*args)
         lowered = jitted.lower(*args)
         text = repr((_environment(), repr(options), lowered.as_text()))
         key = "p" + hashlib.sha256(text.encode()).hexdigest()
         compiled = _load(key, lowered.in_tree, lowered.out_tree)
-        if compiled is None:
-            compiled = lowered.compile()
-            _store(key, compiled)
-        _PROGRAMS[program] = compiled
+        if compiled is not None:
+            _PROGRAMS[program] = (compiled, key)
+        else:
+            _PROGRAMS[program] = (_compile(key, lowered), None)
         if len(_PROGRAMS) > _MAX_PROGRAMS:
             _PROGRAMS.popitem(last=False)
     else:
         _PROGRAMS.move_to_end(program)
-    return compiled(*dynamic)
+    return _run(_PROGRAMS, program, jitted, args, dynamic)
+
+
+def _run(table, slot, jitted, args, call_args):
+    """Runs `table[slot]`'s executable on `call_args`. The first call of one loaded
+    from disk is waited for, so that a failure at run time shows here: its entry
+    is then removed, and the program (`jitted` on `args`) compiled, written and
+    run. (An executable without its object code fails at its first kernel; one
+    that lacks only some of it is refused at loading.)"""
+    compiled, key = table[slot]
+    if key is None:
+        return compiled(*call_args)
+    try:
+        out = jax.block_until_ready(compiled(*call_args))
+    except jax.errors.JaxRuntimeError:
+        _remove(key)
+        compiled = _compile(key, jitted.lower(*args))
+        out = compiled(*call_args)
+    table[slot] = (compiled, None)
+    return out
+
+
+# JAX's monitoring event of a program taken from its persistent compilation cache.
+_JAX_CACHE_HIT = "/jax/compilation_cache/cache_hits"
+_COMPILING = threading.local()
+
+
+def _on_event(event, **kwargs):
+    if event == _JAX_CACHE_HIT and getattr(_COMPILING, "hits", None) is not None:
+        _COMPILING.hits += 1
+
+
+@functools.lru_cache(maxsize=1)
+def _listen():
+    jax.monitoring.register_event_listener(_on_event)
+
+
+def _compile(key, lowered):
+    """`lowered.compile()`, written to disk under `key` unless JAX took it from its
+    persistent compilation cache (which keeps it for later processes itself)."""
+    _listen()
+    _COMPILING.hits = 0
+    try:
+        compiled = lowered.compile()
+        hits = _COMPILING.hits
+    finally:
+        _COMPILING.hits = None
+    if not hits:
+        _store(key, compiled)
+    return compiled
 
 
 def _path(key):
     folder = cache_dir()
     return None if folder is None else os.path.join(folder, key + ".bin")
+
+
+def _remove(key):
+    try:
+        os.remove(_path(key))
+    except (OSError, TypeError):  # (gone already, or the cache turned off)
+        pass
 
 
 def _load(key, in_tree, out_tree):

@@ -5,8 +5,11 @@ stays under its size."""
 
 import collections
 import os
+import subprocess
+import sys
 
 import diffrax as dfx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -132,8 +135,6 @@ def test_eviction_keeps_the_most_recently_used(tmp_path):
 
 
 def test_a_sweeps_derivative_is_compiled_once_for_later_processes(cache):
-    import jax
-
     folder, loads, new_process = cache
     q0 = jnp.linspace(0.2, 2.0, 12)
 
@@ -150,3 +151,115 @@ def test_a_sweeps_derivative_is_compiled_once_for_later_processes(cache):
     np.testing.assert_allclose(other, first * np.sqrt(1.3 / 2.0), rtol=1e-7)
     exact = jax.grad(lambda q: pendulum.period(q, g=1.3).sum())(q0)
     np.testing.assert_allclose(first, exact, rtol=1e-6)
+
+
+def _failing_loads(monkeypatch):
+    """Executables loaded from disk that raise at run time, as one does whose thunks
+    name a kernel its object code lacks; and the keys removed and stored."""
+    load, remove, store = executables._load, executables._remove, executables._store
+    events = []
+
+    def broken(key, in_tree, out_tree):
+        if load(key, in_tree, out_tree) is None:
+            return None
+
+        def run(*args):
+            raise jax.errors.JaxRuntimeError(
+                "NOT_FOUND: Function select_bitcast_fusion.4 not found (type id: 1)"
+            )
+
+        return run
+
+    def removed(key):
+        events.append(("remove", key))
+        remove(key)
+
+    def stored(key, compiled):
+        events.append(("store", key))
+        store(key, compiled)
+
+    monkeypatch.setattr(executables, "_load", broken)
+    monkeypatch.setattr(executables, "_remove", removed)
+    monkeypatch.setattr(executables, "_store", stored)
+    return events, load
+
+
+def test_a_loaded_executable_that_fails_is_compiled_again(cache, monkeypatch):
+    folder, loads, new_process = cache
+    q0 = jnp.linspace(0.1, 2.5, 8)
+    first = lagrax.sweep_periods(pendulum.lagrangian(g=1.3), q0, **SWEEP)
+    (name,) = _files(folder)
+    events, load = _failing_loads(monkeypatch)
+    new_process()
+    other = lagrax.sweep_periods(pendulum.lagrangian(g=2.0), q0, **SWEEP)
+    # Loaded, failed, removed, compiled and stored again; the call's result is right.
+    key = name.removesuffix(".bin")
+    assert loads == [False, True] and events == [("remove", key), ("store", key)]
+    np.testing.assert_allclose(
+        other.periods, pendulum.period(q0, g=2.0), rtol=1e-8, atol=0
+    )
+    # This process keeps the fresh compile; a later one loads the new entry.
+    lagrax.sweep_periods(pendulum.lagrangian(g=1.3), q0, **SWEEP)
+    assert loads == [False, True] and _files(folder) == [name]
+    monkeypatch.setattr(executables, "_load", load)
+    new_process()
+    again = lagrax.sweep_periods(pendulum.lagrangian(g=1.3), q0, **SWEEP)
+    assert loads[-1] is True
+    np.testing.assert_array_equal(again.periods, first.periods)
+
+
+def test_a_loaded_tape_executable_that_fails_is_compiled_again(monkeypatch, tmp_path):
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(executables, "_LOADED", {})
+    f = jax.jit(lambda x, y: jnp.sin(x) * y)
+    x, y = jnp.linspace(0.0, 1.0, 5), jnp.float64(2.0)
+    out_tree = jax.tree.structure(x)
+    first = executables.call(f, "sin", out_tree, x, y)
+    (name,) = _files(tmp_path)
+    events, _ = _failing_loads(monkeypatch)
+    monkeypatch.setattr(executables, "_LOADED", {})
+    again = executables.call(f, "sin", out_tree, x, y)
+    key = name.removesuffix(".bin")
+    assert events == [("remove", key), ("store", key)] and _files(tmp_path) == [name]
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_allclose(first, 2.0 * np.sin(np.linspace(0.0, 1.0, 5)))
+    assert executables._LOADED[key][1] is None  # (the fresh compile, not checked)
+
+
+# In a new process: JAX's persistent compilation cache starts once per process.
+_FROM_JAX_CACHE = """
+import os, sys
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+from lagrax import _executables as executables
+
+f = jax.jit(lambda x: jnp.where(x > 0, jnp.sin(x), jnp.cos(x)) * 2.0)
+x = jnp.linspace(-1.0, 1.0, 7)
+first = np.asarray(executables.cached_call(f, None, x))  # (a miss in JAX's cache)
+entries = os.listdir(executables.cache_dir())
+print(len(entries))
+os.remove(os.path.join(executables.cache_dir(), entries[0]))
+jax.clear_caches()
+executables._PROGRAMS.clear()
+again = np.asarray(executables.cached_call(f, None, x))  # (a hit in JAX's cache)
+print(len(os.listdir(executables.cache_dir())), np.array_equal(again, first))
+print(np.allclose(first, 2.0 * np.where(x > 0, np.sin(x), np.cos(x))))
+"""
+
+
+def test_a_program_from_jaxs_compilation_cache_is_not_written(tmp_path):
+    # Such an executable serializes without its object code on CPU: loaded, it
+    # would fail at its first kernel.
+    env = dict(os.environ, LAGRAX_CACHE_DIR=str(tmp_path / "lagrax"))
+    run = subprocess.run(
+        [sys.executable, "-c", _FROM_JAX_CACHE, str(tmp_path / "jax")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["1", "0", "True", "True"]
