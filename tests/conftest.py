@@ -24,3 +24,18 @@ settings.load_profile("ci" if os.environ.get("CI") else "dev")
 @pytest.fixture
 def key():
     return jax.random.key(5678)
+
+
+@pytest.fixture
+def without_jax_cache():
+    """JAX's persistent compilation cache off for the test: the CLI, called in this
+    process by other tests, turns it on for the rest of the process, and a program
+    JAX takes from it is not written to the library's own cache."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    folder = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", None)
+    compilation_cache.reset_cache()
+    yield
+    jax.config.update("jax_compilation_cache_dir", folder)
+    compilation_cache.reset_cache()

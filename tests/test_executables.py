@@ -25,7 +25,7 @@ SWEEP.update(rtol=1e-10, atol=1e-10)
 
 
 @pytest.fixture
-def cache(monkeypatch, tmp_path):
+def cache(monkeypatch, tmp_path, without_jax_cache):
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(executables, "_PROGRAMS", collections.OrderedDict())
     loads = []
@@ -208,7 +208,9 @@ def test_a_loaded_executable_that_fails_is_compiled_again(cache, monkeypatch):
     np.testing.assert_array_equal(again.periods, first.periods)
 
 
-def test_a_loaded_tape_executable_that_fails_is_compiled_again(monkeypatch, tmp_path):
+def test_a_loaded_tape_executable_that_fails_is_compiled_again(
+    monkeypatch, tmp_path, without_jax_cache
+):
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(executables, "_LOADED", {})
     f = jax.jit(lambda x, y: jnp.sin(x) * y)
