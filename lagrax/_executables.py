@@ -25,13 +25,14 @@ versions, `XLA_FLAGS`, the devices and the host CPU (an executable is native cod
 for one processor). An entry that cannot be read is compiled again; past
 `MAX_BYTES` the least recently used entries are removed.
 
-Only an executable compiled by this process is written: one that JAX took from its
-own persistent compilation cache (`jax_compilation_cache_dir`) serializes again
-without its object code on CPU, and XLA loads that without complaint, to fail at
-its first kernel (`NOT_FOUND: Function ... not found`). As a safety net, the first
-call of an executable loaded from disk waits for its result: where it fails, the
-entry is removed and the program compiled, written and run again (no program here
-donates its inputs, so the second run sees the same arguments).
+Nothing is written while JAX's own persistent compilation cache
+(`jax_compilation_cache_dir`) is on or has served the process: an executable JAX
+took from it serializes again without its object code on CPU, which XLA loads
+without complaint, to fail at its first kernel (`NOT_FOUND: Function ... not
+found`); that cache keeps programs for later processes itself. As a safety net,
+the first call of an executable loaded from disk waits for its result: where it
+fails, the entry is removed and the program compiled, written and run again (no
+program here donates its inputs, so the second run sees the same arguments).
 """
 
 import collections
@@ -40,7 +41,6 @@ import hashlib
 import os
 import pickle
 import tempfile
-import threading
 
 import jax
 from jax.experimental import serialize_executable
@@ -168,8 +168,7 @@ def cached_call(jitted, options, *args, n_static=0):
         if cache_dir() is None or jax.process_count() > 1:
             return jitted(*args)
         lowered = jitted.lower(*args)
-        text = repr((_environment(), repr(options), lowered.as_text()))
-        key = "p" + hashlib.sha256(text.encode()).hexdigest()
+        key = _program_key(lowered, options)
         compiled = _load(key, lowered.in_tree, lowered.out_tree)
         if compiled is not None:
             _PROGRAMS[program] = (compiled, key)
@@ -180,6 +179,11 @@ def cached_call(jitted, options, *args, n_static=0):
     else:
         _PROGRAMS.move_to_end(program)
     return _run(_PROGRAMS, program, jitted, args, dynamic)
+
+
+def _program_key(lowered, options):
+    text = repr((_environment(), repr(options), lowered.as_text()))
+    return "p" + hashlib.sha256(text.encode()).hexdigest()
 
 
 def _run(table, slot, jitted, args, call_args):
@@ -201,32 +205,32 @@ def _run(table, slot, jitted, args, call_args):
     return out
 
 
-# JAX's monitoring event of a program taken from its persistent compilation cache.
+# Programs JAX has taken from its persistent compilation cache in this process,
+# counted from its monitoring events (listened to from the start: such an executable
+# can come back later from JAX's in-memory cache, without an event).
 _JAX_CACHE_HIT = "/jax/compilation_cache/cache_hits"
-_COMPILING = threading.local()
+_jax_cache_hits = 0
 
 
 def _on_event(event, **kwargs):
-    if event == _JAX_CACHE_HIT and getattr(_COMPILING, "hits", None) is not None:
-        _COMPILING.hits += 1
+    global _jax_cache_hits
+    if event == _JAX_CACHE_HIT:
+        _jax_cache_hits += 1
 
 
-@functools.lru_cache(maxsize=1)
-def _listen():
-    jax.monitoring.register_event_listener(_on_event)
+jax.monitoring.register_event_listener(_on_event)
 
 
 def _compile(key, lowered):
-    """`lowered.compile()`, written to disk under `key` unless JAX took it from its
-    persistent compilation cache (which keeps it for later processes itself)."""
-    _listen()
-    _COMPILING.hits = 0
-    try:
-        compiled = lowered.compile()
-        hits = _COMPILING.hits
-    finally:
-        _COMPILING.hits = None
-    if not hits:
+    """`lowered.compile()`, written to disk under `key` unless JAX's persistent
+    compilation cache is on or has served this process: an executable JAX took from
+    it serializes without its object code, and that cache keeps programs for later
+    processes itself."""
+    compiled = lowered.compile()
+    jax_cache = jax.config.jax_compilation_cache_dir is not None and (
+        jax.config.jax_enable_compilation_cache
+    )
+    if not (jax_cache or _jax_cache_hits):
         _store(key, compiled)
     return compiled
 

@@ -27,15 +27,19 @@ def key():
 
 
 @pytest.fixture
-def without_jax_cache():
+def without_jax_cache(monkeypatch):
     """JAX's persistent compilation cache off for the test: the CLI, called in this
-    process by other tests, turns it on for the rest of the process, and a program
-    JAX takes from it is not written to the library's own cache."""
+    process by other tests, turns it on for the rest of the process, and while it
+    is on (or has served the process) the library writes no executables."""
     from jax.experimental.compilation_cache import compilation_cache
+
+    from lagrax import _executables
 
     folder = jax.config.jax_compilation_cache_dir
     jax.config.update("jax_compilation_cache_dir", None)
     compilation_cache.reset_cache()
+    jax.clear_caches()  # (no executable JAX took from that cache comes back)
+    monkeypatch.setattr(_executables, "_jax_cache_hits", 0)
     yield
     jax.config.update("jax_compilation_cache_dir", folder)
     compilation_cache.reset_cache()
