@@ -197,7 +197,9 @@ def sweep_periods(
     instead of compiling (CPU: ~2.5 s for tracing and loading instead of ~14 s). It
     never changes JAX's configuration; under `jax.jit` the program is yours, and
     JAX's persistent compilation cache
-    (`jax.config.update("jax_compilation_cache_dir", ...)`) keeps it.
+    (`jax.config.update("jax_compilation_cache_dir", ...)`) keeps it. While that
+    cache is on, it keeps the eager programs too and the library writes none of
+    its own (an executable JAX took from it serializes without its machine code).
     """
     q0 = as_real_array(q0, "q0")
     if q0.ndim != 1 or q0.shape[0] == 0:
