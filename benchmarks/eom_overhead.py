@@ -64,6 +64,10 @@ from lagrax._trajectory.simulate import default_controller  # noqa: E402
 from lagrax.systems import cycloid, double_pendulum, pendulum  # noqa: E402
 
 
+# Cold compiles, as measured: the library's disk cache of executables off.
+os.environ["LAGRAX_CACHE_DIR"] = ""
+
+
 RESULTS = pathlib.Path(__file__).parent / "results"
 
 

@@ -22,6 +22,10 @@ enable one are removed from the workers' environment), float64:
   `jax.jit(jax.vmap(...))`, beside heyoka.py's build of the same system (its
   `lagrangian()`, batch mode, tol 1e-12) and its run.
 - the CLI's default job (`python -m lagrax sweep --quiet`) from an empty cache.
+- a script run again: the sweep of 4096 amplitudes in three processes sharing the
+  library's disk cache of executables (empty, then filled; the third with another
+  g). Every other measurement runs with that cache off (`LAGRAX_CACHE_DIR=""`),
+  except the CLI's, which runs with an empty home (its own caches empty).
 - the tape path (`LAGRAX_TAPE_TIER=1`: L as data, one executable per machine kept
   in the library's own cache): a new Lagrangian (g = 1.3) in a fresh process with
   that cache empty (the executable compiled and written once), then in another
@@ -142,12 +146,13 @@ def work_sweep(args):
 
     a = _amplitudes(args.n)
     q0 = jax.numpy.asarray(a)
-    L = pendulum.lagrangian()
+    g = {} if args.g is None else dict(g=args.g)
+    L = pendulum.lagrangian(**g)
     r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "first", stages)
     row.update(times)
     r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "steady")
     row.update(times)
-    err, failed = _max_error(r.periods, _exact(a))
+    err, failed = _max_error(r.periods, _exact(a, **g))
     row.update(n=args.n, max_rel_error=err, failed=failed)
     if args.rebuilt:
         L2 = pendulum.lagrangian(g=2.0)
@@ -307,6 +312,8 @@ WORKERS = dict(
 
 def _env(**extra):
     env = {k: v for k, v in os.environ.items() if k not in _CACHE_VARS}
+    # Cold: the library's disk cache of executables off unless a row asks for one.
+    env["LAGRAX_CACHE_DIR"] = ""
     env.update(extra)
     repo = os.path.dirname(HERE)
     env["PYTHONPATH"] = repo + os.pathsep + env.get("PYTHONPATH", "")
@@ -335,6 +342,7 @@ def cli_default_job(core):
     """`python -m lagrax sweep --quiet` with an empty cache directory, pinned."""
     with tempfile.TemporaryDirectory() as cache:
         env = dict(_env(), XDG_CACHE_HOME=cache)
+        del env["LAGRAX_CACHE_DIR"]  # (the command's own caches, in the empty home)
         cmd = ["taskset", "-c", str(core), sys.executable, "-m", "lagrax", "sweep"]
         t = time.perf_counter()
         out = subprocess.run(cmd + ["--quiet"], capture_output=True, text=True, env=env)
@@ -366,6 +374,7 @@ def main():
     p.add_argument("--worker")
     p.add_argument("--n", type=int, default=4096)
     p.add_argument("--rebuilt", action="store_true")
+    p.add_argument("--g", type=float, default=None, help="sweep: the pendulum's g")
     p.add_argument("--repeat", action="store_true", help="grad: a second call too")
     p.add_argument("--system", default="pendulum")
     args = p.parse_args()
@@ -390,12 +399,27 @@ def main():
     out["simulate_heyoka"] = spawn(c, "heyoka", n=256, system="double_pendulum")
     print("simulate", json.dumps(out["simulate"]))
     print("heyoka double pendulum", json.dumps(out["simulate_heyoka"]))
+    # A script run again: the library's disk cache empty, then filled by the first
+    # run; then the same body with another g in a third process.
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(LAGRAX_CACHE_DIR=cache)
+        out["rerun"] = [
+            spawn(c, "sweep", env=env, n=4096),
+            spawn(c, "sweep", env=env, n=4096),
+            spawn(c, "sweep", env=env, n=4096, g=2.0),
+        ]
+    for name, row in zip(("empty", "filled", "filled, new g"), out["rerun"]):
+        print(f"rerun, cache {name}", json.dumps(row))
     with tempfile.TemporaryDirectory() as cache:
         env = dict(LAGRAX_TAPE_TIER="1", LAGRAX_CACHE_DIR=cache)
         out["tape_cold"] = spawn(c, "tape", env=env, n=4096)
         out["tape_warm"] = spawn(c, "tape", env=env, n=4096, repeat=True)
         out["tape_other_n"] = spawn(c, "tape", env=env, n=1000)
-        out["tape_executables"] = sum(len(files) for _, _, files in os.walk(cache))
+        # (The tape path's entries are named t*.bin; p*.bin are the specialized
+        # programs the `--repeat` row compiled.)
+        out["tape_executables"] = sum(
+            name.startswith("t") for _, _, files in os.walk(cache) for name in files
+        )
     print("tape path, cache empty", json.dumps(out["tape_cold"]))
     print("tape path, cache filled", json.dumps(out["tape_warm"]))
     print("tape path, 1000 amplitudes", json.dumps(out["tape_other_n"]))

@@ -53,6 +53,10 @@ import lagrax  # noqa: E402
 from lagrax.systems import cycloid, pendulum  # noqa: E402
 
 
+# Cold compiles, as measured: the library's disk cache of executables off.
+os.environ["LAGRAX_CACHE_DIR"] = ""
+
+
 RESULTS = pathlib.Path(__file__).parent / "results"
 PENDULUM = pendulum.lagrangian()
 AMPLITUDE = 2.5

@@ -50,6 +50,10 @@ import sys
 import time
 
 
+# Cold compiles, as measured: the library's disk cache of executables off.
+os.environ["LAGRAX_CACHE_DIR"] = ""
+
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESULTS = os.path.join(HERE, "results")
 TOLS = (1e-12, 1e-13, 1e-14)

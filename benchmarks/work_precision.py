@@ -64,6 +64,10 @@ import lagrax  # noqa: E402
 from lagrax.systems import cycloid, pendulum  # noqa: E402
 
 
+# Cold compiles, as measured: the library's disk cache of executables off.
+os.environ["LAGRAX_CACHE_DIR"] = ""
+
+
 RESULTS = pathlib.Path(__file__).parent / "results"
 MAX_STEPS = 2**18  # fixed-step runs and the tight reference
 # Compared adaptive runs: Kvaerno5 at rtol 1e-12 on the stiff spring ran for >8 min at

@@ -1,8 +1,19 @@
+import atexit
 import os
+import shutil
+import tempfile
 
 import jax
 import pytest
 
+
+# The library's disk cache of executables (`lagrax._executables`) off, unless a test
+# turns it on: tests compile what they check, and write nothing outside their
+# temporary folders. The CLI, called in this process by some tests, keeps JAX's
+# persistent compilation cache under $XDG_CACHE_HOME: a folder of this run's own.
+os.environ["LAGRAX_CACHE_DIR"] = ""
+os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="lagrax-tests-")
+atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], ignore_errors=True)
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
@@ -19,3 +30,22 @@ settings.load_profile("ci" if os.environ.get("CI") else "dev")
 @pytest.fixture
 def key():
     return jax.random.key(5678)
+
+
+@pytest.fixture
+def without_jax_cache(monkeypatch):
+    """JAX's persistent compilation cache off for the test: the CLI, called in this
+    process by other tests, turns it on for the rest of the process, and while it
+    is on (or has served the process) the library writes no executables."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    from lagrax import _executables
+
+    folder = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", None)
+    compilation_cache.reset_cache()
+    jax.clear_caches()  # (no executable JAX took from that cache comes back)
+    monkeypatch.setattr(_executables, "_jax_cache_hits", 0)
+    yield
+    jax.config.update("jax_compilation_cache_dir", folder)
+    compilation_cache.reset_cache()

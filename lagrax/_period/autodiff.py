@@ -32,22 +32,46 @@ def _periods_jvp(L, m, devices, primals, tangents):
     return out, tangents_of(out, dT)
 
 
-def forward_mode(periods_of, q0, consts, dq0, dconsts):
+def forward_mode(periods_of, q0, consts, dq0, dconsts, jacobian=None):
     """`(periods_of(q0, consts), dT)`: the periods' tangent along `(dq0, dconsts)`
     (symbolic zeros for the inputs not differentiated), by one forward pass per
-    direction (`_directions`). `periods_of(q0, consts) -> (Periods, aux)`."""
+    direction (`_directions`). `periods_of(q0, consts) -> (Periods, aux)`.
+    `jacobian(q0, consts, with_q, wanted)`: `forward_jacobian` of `periods_of`, or a
+    compiled equivalent (`sweep._sweep_call_jvp`)."""
     leaves, treedef = jax.tree.flatten(consts)
     dleaves = treedef.flatten_up_to(dconsts)
     inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in leaves]
-    wanted = [ok and not _is_zero(dx) for ok, dx in zip(inexact, dleaves)]
-    directions = _directions(q0, dq0, leaves, wanted)
-    if not directions:  # (every tangent a symbolic zero)
+    wanted = tuple(ok and not _is_zero(dx) for ok, dx in zip(inexact, dleaves))
+    with_q = not _is_zero(dq0)
+    if not (with_q or any(wanted)):  # (every tangent a symbolic zero)
         out = periods_of(q0, consts)
         return out, jnp.zeros_like(out[0].periods)
+    if jacobian is None:
+        jacobian = functools.partial(forward_jacobian, periods_of)
+    out, jac = jacobian(q0, consts, with_q, wanted)
+    k = 0
+    dT = jnp.zeros_like(out[0].periods)
+    if with_q:
+        dT, k = jac[0] * dq0, 1
+    for x, dx, ok in zip(leaves, dleaves, wanted):
+        if not ok:
+            continue
+        size = int(np.size(x))
+        dT = dT + jnp.tensordot(jnp.reshape(dx, (-1,)), jac[k : k + size], axes=1)
+        k += size
+    return out, dT
+
+
+def forward_jacobian(periods_of, q0, consts, with_q, wanted):
+    """`(periods_of(q0, consts), jac)`: per direction (`_directions`: along q0 if
+    `with_q`, then each scalar of each leaf of `consts` that is `wanted`), the
+    periods' derivative, `jac` of shape `(directions, n)` (diagonal in q0: lanes are
+    independent)."""
+    leaves, treedef = jax.tree.flatten(consts)
+    directions = _directions(q0, with_q, leaves, wanted)
     # The forward passes differentiate only the inputs being differentiated: the
     # others enter as constants, so that a `custom_jvp` inside `periods_of` sees
     # them as symbolic zeros (and adds no directions of its own).
-    with_q = not _is_zero(dq0)
     picked = [k for k, ok in enumerate(wanted) if ok]
     dq_dirs = jnp.stack([d[0] for d in directions])
     dc_dirs = [jnp.stack([d[1][k] for d in directions]) for k in picked]
@@ -74,30 +98,18 @@ def forward_mode(periods_of, q0, consts, dq0, dconsts):
     # several times the tracing of the forward pass itself.
     if len(directions) == 1:
         out, jac = tangent(dq_dirs[0], [d[0] for d in dc_dirs])
-        jac = jac[None]
-    else:
-        out, jac = jax.vmap(tangent, out_axes=(None, 0))(dq_dirs, dc_dirs)  # (dirs, n)
-    k = 0
-    dT = jnp.zeros_like(out[0].periods)
-    if not _is_zero(dq0):
-        dT, k = jac[0] * dq0, 1
-    for x, dx, ok in zip(leaves, dleaves, wanted):
-        if not ok:
-            continue
-        size = int(np.size(x))
-        dT = dT + jnp.tensordot(jnp.reshape(dx, (-1,)), jac[k : k + size], axes=1)
-        k += size
-    return out, dT
+        return out, jac[None]
+    return jax.vmap(tangent, out_axes=(None, 0))(dq_dirs, dc_dirs)  # (dirs, n)
 
 
-def _directions(q0, dq0, leaves, wanted):
+def _directions(q0, with_q, leaves, wanted):
     """The forward passes to run, as `(dq0, dconsts)` tangent directions. Lanes are
     independent: dT_i/dq0_j is diagonal, one pass for all of it; each scalar
     parameter L closes over takes one more. Only for the inputs whose tangent is not
     a symbolic zero (`symbolic_zeros=True`): the derivative with respect to q0 alone
     of a Lagrangian with many parameters is one pass, not one per parameter."""
     no_consts = [jnp.zeros_like(x) for x in leaves]
-    directions = [] if _is_zero(dq0) else [(jnp.ones_like(q0), no_consts)]
+    directions = [(jnp.ones_like(q0), no_consts)] if with_q else []
     for i, (x, ok) in enumerate(zip(leaves, wanted)):
         if not ok:
             continue

@@ -1,0 +1,305 @@
+"""Compiled programs kept on disk by the library, so that a later process does not
+compile them again.
+
+Two kinds of entry, each compiled once, serialized (`jax.experimental.
+serialize_executable`) and loaded in a fraction of a second after:
+
+- `call`: programs that do not depend on the Lagrangian (the tape path,
+    `lagrax._period.tier`), keyed on the library's source, the static configuration
+    and the arguments' shapes, without tracing anything: one executable serves every
+    Lagrangian (entries `t*.bin`).
+- `cached_call`: any compiled program of an eager call (the period sweep, the
+    batched trajectories), keyed on the text of the lowered program itself (which
+    holds everything it computes: a rebuilt Lagrangian with new parameter values that
+    reach it as arguments lowers to the same text) and the compile options. A script
+    run again, or a notebook restarted, traces and lowers its programs (a second or
+    two) and loads them instead of compiling (~10 s for a first sweep on a CPU core),
+    as heyoka.py's on-disk cache of compiled code does (entries `p*.bin`).
+
+The library never touches JAX's global configuration (its persistent compilation
+cache stays the user's choice): this is its own cache, in `$LAGRAX_CACHE_DIR` or else
+`$XDG_CACHE_HOME/lagrax/executables` (`~/.cache/...`); `LAGRAX_CACHE_DIR=""` turns
+it off; so does running as one of several processes (`jax.distributed`), where an
+executable belongs to one process's devices, and a default backend other than the
+CPU (a GPU's executables were not tested here). Every key also holds the JAX and jaxlib
+versions, `XLA_FLAGS`, the devices and the host CPU (an executable is native code
+for one processor). An entry that cannot be read is compiled again; past
+`MAX_BYTES` the least recently used entries are removed.
+
+Nothing is written while JAX's own persistent compilation cache
+(`jax_compilation_cache_dir`) is on or has served the process: an executable JAX
+took from it serializes again without its object code on CPU, which XLA loads
+without complaint, to fail at its first kernel (`NOT_FOUND: Function ... not
+found`); that cache keeps programs for later processes itself. As a safety net,
+the first call of an executable loaded from disk waits for its result: where it
+fails, the entry is removed and the program compiled, written and run again (no
+program here donates its inputs, so the second run sees the same arguments).
+"""
+
+import collections
+import functools
+import hashlib
+import os
+import pickle
+import tempfile
+
+import jax
+from jax.experimental import serialize_executable
+
+
+# Compiled programs of this process: by key (`call`), and by program and argument
+# types (`cached_call`), most recently used last; each as (executable, the key of
+# the disk entry it was loaded from until its first call has run, else None).
+_LOADED: dict = {}
+_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
+_MAX_PROGRAMS = 64
+# The most the cache folder holds (bytes); a sweep's executable is ~2 MB.
+MAX_BYTES = 1 << 30
+
+
+def cache_dir() -> str | None:
+    """Where executables are kept, or None when the cache is off."""
+    env = os.environ.get("LAGRAX_CACHE_DIR")
+    if env is not None:
+        return env or None
+    base = os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache"))
+    return os.path.join(base, "lagrax", "executables")
+
+
+@functools.lru_cache(maxsize=1)
+def _source_digest() -> str:
+    """A digest of the library's source: an executable compiled by other code is
+    never loaded."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    h = hashlib.sha256()
+    for folder, dirs, files in sorted(os.walk(root)):
+        dirs.sort()
+        for name in sorted(files):
+            if name.endswith(".py"):
+                path = os.path.join(folder, name)
+                h.update(os.path.relpath(path, root).encode())
+                with open(path, "rb") as fh:
+                    h.update(fh.read())
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _host() -> str:
+    """The processor the native code is compiled for: its model and features."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            lines = [ln for ln in fh if ln.startswith(("model name", "flags"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        import platform
+
+        return platform.processor() + platform.machine()
+
+
+def _environment():
+    devices = [(d.platform, d.device_kind, d.id) for d in jax.devices()]
+    return (
+        jax.__version__,
+        jax.lib.__version__,
+        os.environ.get("XLA_FLAGS", ""),
+        devices,
+        _host(),
+    )
+
+
+def _key(static, args) -> str:
+    avals = [
+        (getattr(x, "shape", ()), str(jax.numpy.result_type(x)))
+        for x in jax.tree.leaves(args)
+    ]
+    text = repr(
+        (
+            _source_digest(),
+            _environment(),
+            repr(static),
+            jax.tree.structure(args),
+            avals,
+        )
+    )
+    return "t" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def call(jitted, static, out_tree, *args):
+    """`jitted(*args)` through an executable compiled once per machine: from this
+    process's table, else from disk, else compiled (and written to disk).
+    `static`: what besides the arguments' shapes determines the program (its
+    `repr` must say it all); `out_tree`: the structure of its outputs (a pytree
+    definition does not survive pickling: an `equinox.Module`'s holds sentinels)."""
+    if not _applies():
+        return jitted(*args)
+    key = _key(static, args)
+    if key not in _LOADED:
+        in_tree = jax.tree.structure((args, {}))
+        compiled = _load(key, in_tree, out_tree)
+        if compiled is not None:
+            _LOADED[key] = (compiled, key)
+        else:
+            _LOADED[key] = (_compile(key, jitted.lower(*args)), None)
+    return _run(_LOADED, key, jitted, args, args)
+
+
+def _applies() -> bool:
+    """Whether executables are kept on disk here: one process (an executable holds
+    one process's devices) on a CPU (the only backend they were tested on)."""
+    return jax.process_count() == 1 and jax.default_backend() == "cpu"
+
+
+def _signature(x):
+    """What the lowering of `x` depends on (cheap: this runs on every call)."""
+    dtype = getattr(x, "dtype", None)
+    if dtype is None:  # a Python scalar
+        return type(x)
+    return (
+        type(x),
+        getattr(x, "shape", ()),  # (JAX's typed Python scalars have none)
+        dtype,
+        getattr(x, "weak_type", False),
+        getattr(x, "sharding", None),
+    )
+
+
+def cached_call(jitted, options, *args, n_static=0):
+    """`jitted(*args)` (all of `args` concrete; the first `n_static` are `jitted`'s
+    static arguments) through the executable of its lowered program: from this
+    process's table, else from disk, else compiled and written to disk.
+    `options`: the `compiler_options` `jitted` was made with (they are not in the
+    lowered text)."""
+    static, dynamic = args[:n_static], args[n_static:]
+    leaves, treedef = jax.tree.flatten(dynamic)
+    program = (jitted, static, treedef, tuple(_signature(x) for x in leaves))
+    if program not in _PROGRAMS:
+        if cache_dir() is None or not _applies():
+            return jitted(*args)
+        lowered = jitted.lower(*args)
+        key = _program_key(lowered, options)
+        compiled = _load(key, lowered.in_tree, lowered.out_tree)
+        if compiled is not None:
+            _PROGRAMS[program] = (compiled, key)
+        else:
+            _PROGRAMS[program] = (_compile(key, lowered), None)
+        if len(_PROGRAMS) > _MAX_PROGRAMS:
+            _PROGRAMS.popitem(last=False)
+    else:
+        _PROGRAMS.move_to_end(program)
+    return _run(_PROGRAMS, program, jitted, args, dynamic)
+
+
+def _program_key(lowered, options):
+    text = repr((_environment(), repr(options), lowered.as_text()))
+    return "p" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def _run(table, slot, jitted, args, call_args):
+    """Runs `table[slot]`'s executable on `call_args`. The first call of one loaded
+    from disk is waited for, so that a failure at run time shows here: its entry
+    is then removed, and the program (`jitted` on `args`) compiled, written and
+    run. (An executable without its object code fails at its first kernel; one
+    that lacks only some of it is refused at loading.)"""
+    compiled, key = table[slot]
+    if key is None:
+        return compiled(*call_args)
+    try:
+        out = jax.block_until_ready(compiled(*call_args))
+    except jax.errors.JaxRuntimeError:
+        _remove(key)
+        compiled = _compile(key, jitted.lower(*args))
+        out = compiled(*call_args)
+    table[slot] = (compiled, None)
+    return out
+
+
+# Programs JAX has taken from its persistent compilation cache in this process,
+# counted from its monitoring events (listened to from the start: such an executable
+# can come back later from JAX's in-memory cache, without an event).
+_JAX_CACHE_HIT = "/jax/compilation_cache/cache_hits"
+_jax_cache_hits = 0
+
+
+def _on_event(event, **kwargs):
+    global _jax_cache_hits
+    if event == _JAX_CACHE_HIT:
+        _jax_cache_hits += 1
+
+
+jax.monitoring.register_event_listener(_on_event)
+
+
+def _compile(key, lowered):
+    """`lowered.compile()`, written to disk under `key` unless JAX's persistent
+    compilation cache is on or has served this process: an executable JAX took from
+    it serializes without its object code, and that cache keeps programs for later
+    processes itself."""
+    compiled = lowered.compile()
+    jax_cache = jax.config.jax_compilation_cache_dir is not None and (
+        jax.config.jax_enable_compilation_cache
+    )
+    if not (jax_cache or _jax_cache_hits):
+        _store(key, compiled)
+    return compiled
+
+
+def _path(key):
+    folder = cache_dir()
+    return None if folder is None else os.path.join(folder, key + ".bin")
+
+
+def _remove(key):
+    try:
+        os.remove(_path(key))
+    except (OSError, TypeError):  # (gone already, or the cache turned off)
+        pass
+
+
+def _load(key, in_tree, out_tree):
+    path = _path(key)
+    if path is None or not os.path.exists(path):
+        return None
+    try:
+        with open(path, "rb") as fh:
+            payload = pickle.load(fh)
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        os.utime(path)  # (recently used: kept longest)
+        return compiled
+    except Exception:  # noqa: BLE001 -- a damaged or stale entry: compile again
+        return None
+
+
+def _store(key, compiled):
+    path = _path(key)
+    if path is None:
+        return
+    try:
+        payload = serialize_executable.serialize(compiled)[0]
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
+        with os.fdopen(fd, "wb") as fh:
+            pickle.dump(payload, fh)
+        os.replace(tmp, path)
+        _evict(os.path.dirname(path))
+    except Exception:  # noqa: BLE001 -- a read-only or full disk, or a program that
+        return  # cannot be serialized (host callbacks): kept in memory only
+
+
+def _evict(folder, limit=None):
+    """Removes the least recently used entries until the folder holds at most
+    `limit` (default `MAX_BYTES`) bytes."""
+    limit = MAX_BYTES if limit is None else limit
+    entries = []
+    for e in os.scandir(folder):
+        if e.name.endswith(".bin") and e.is_file():
+            st = e.stat()
+            entries.append((st.st_mtime, st.st_size, e.path))
+    total = sum(size for _, size, _ in entries)
+    for _, size, path in sorted(entries):
+        if total <= limit:
+            break
+        try:
+            os.remove(path)
+            total -= size
+        except OSError:
+            pass
