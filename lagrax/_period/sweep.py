@@ -190,13 +190,13 @@ def sweep_periods(
     jax.grad(mean_period)(4.0)  # -mean_period(4.0) / 8, as T ∝ 1/√g
     ```
 
-    **Repeat runs:** a new Lagrangian's first sweep compiles for seconds. An eager
-    sweep's compiled program is kept on disk by the library (in
+    **Repeat runs:** a new Lagrangian's first sweep compiles for seconds. On a CPU
+    an eager sweep's compiled program is kept on disk by the library (in
     `$LAGRAX_CACHE_DIR`, else `~/.cache/lagrax/executables`, at most 1 GiB, the
     least recently used entries removed first; `LAGRAX_CACHE_DIR=""` turns it off),
     keyed on the program's own text: a later process sweeping the same body, with
     any parameter values, at the same number of amplitudes and options loads it
-    instead of compiling (CPU: ~2.5 s for tracing and loading instead of ~14 s). It
+    instead of compiling (~3 s for tracing and loading instead of ~14 s). It
     never changes JAX's configuration; under `jax.jit` the program is yours, and
     JAX's persistent compilation cache
     (`jax.config.update("jax_compilation_cache_dir", ...)`) keeps it. While that
