@@ -8,24 +8,15 @@ import pytest
 
 
 # The library's disk cache of executables (`lagrax._executables`) off, unless a test
-# turns it on, and nothing written outside this run's temporary folders: one folder
-# for the whole run (made by the first process, pytest-xdist's workers inherit it),
-# $XDG_CACHE_HOME, where the CLI (called in this process by some tests) keeps JAX's
-# persistent compilation cache. The suite keeps its compiled programs there too, so
-# that the workers share them; a test that counts compiles turns it off
-# (`without_jax_cache`).
+# turns it on: tests compile what they check, and write nothing outside their
+# temporary folders. The CLI, called in this process by some tests, keeps JAX's
+# persistent compilation cache under $XDG_CACHE_HOME: a folder of this run's own.
 os.environ["LAGRAX_CACHE_DIR"] = ""
-if "LAGRAX_TEST_FOLDER" not in os.environ:
-    os.environ["LAGRAX_TEST_FOLDER"] = tempfile.mkdtemp(prefix="lagrax-tests-")
-    atexit.register(shutil.rmtree, os.environ["LAGRAX_TEST_FOLDER"], True)
-os.environ["XDG_CACHE_HOME"] = os.environ["LAGRAX_TEST_FOLDER"]
+os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="lagrax-tests-")
+atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], ignore_errors=True)
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
-jax.config.update(
-    "jax_compilation_cache_dir",
-    os.path.join(os.environ["XDG_CACHE_HOME"], "lagrax", "jax"),
-)
 
 # Keep the suite honest on a 2-core CI machine: hypothesis examples are few but real.
 from hypothesis import settings  # noqa: E402

@@ -209,7 +209,7 @@ def test_chunk_size_and_order_independence():
     )
 
 
-def test_no_recompilation_when_amplitudes_or_tolerances_change(without_jax_cache):
+def test_no_recompilation_when_amplitudes_or_tolerances_change():
     compiles = []
 
     def listener(event, duration, **kwargs):
