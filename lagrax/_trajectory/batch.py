@@ -398,9 +398,11 @@ def simulate_batch(
     rtol = lanes(_positive(rtol, "rtol", dtype), "rtol")
     atol = lanes(_positive(atol, "atol", dtype), "atol")
     max_steps = positive_int(max_steps, "max_steps")
-    share = -(-B // max(1, min(B, jax.local_device_count())))
+    # One loop per device, each over its share of the releases.
+    devices = tuple(jax.local_devices())
+    D = len(devices) if B >= len(devices) else 1
     width = lane_count(
-        width, "width", jax.local_devices(), share, cpu=256, accelerator=1 << 17
+        width, "width", devices, -(-B // D), cpu=256, accelerator=1 << 17
     )
     plan = _saveat_plan(saveat, t0, t1)
     if not isinstance(solver, Taylor) or plan == "vmap" or kwargs:
@@ -424,8 +426,6 @@ def simulate_batch(
     )
     ts_arr = jnp.zeros((0,), dtype) if ts is None else ts.astype(dtype)
     cpu = jax.default_backend() == "cpu"
-    devices = tuple(jax.local_devices())
-    D = len(devices) if B >= len(devices) else 1
     args = (q0, qdot0, t0, t1, rtol, atol)
     if B % D:  # padded with copies of the last release, dropped below
         args = tuple(
