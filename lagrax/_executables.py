@@ -41,10 +41,14 @@ import functools
 import hashlib
 import os
 import pickle
+import sys
 import tempfile
 
 import jax
+import numpy as np
 from jax.experimental import serialize_executable
+
+from . import _faithful as faithful
 
 
 # Compiled programs of this process: by key (`call`), and by program and argument
@@ -140,7 +144,7 @@ def call(jitted, static, out_tree, *args):
             _LOADED[key] = (compiled, key)
         else:
             _LOADED[key] = (_compile(key, jitted.lower(*args)), None)
-    return _run(_LOADED, key, jitted, args, args)
+    return _run(_LOADED, key, args, lambda: _compile(key, jitted.lower(*args)))
 
 
 def _applies() -> bool:
@@ -163,30 +167,215 @@ def _signature(x):
     )
 
 
-def cached_call(jitted, options, *args, n_static=0):
+def cached_call(jitted, options, *args, n_static=0, origin=None, out_tree=None):
     """`jitted(*args)` (all of `args` concrete; the first `n_static` are `jitted`'s
     static arguments) through the executable of its lowered program: from this
     process's table, else from disk, else compiled and written to disk.
     `options`: the `compiler_options` `jitted` was made with (they are not in the
-    lowered text)."""
+    lowered text). `origin`: `(factory, *arguments)`, a module-level function of the
+    library with `factory(*arguments) is jitted`: with it, a later process finds the
+    entry by its pre-key, without tracing (module docstring). `out_tree`: the
+    structure of `jitted`'s outputs, where a pickled one is not equal to it (an
+    `equinox.Module`'s)."""
     static, dynamic = args[:n_static], args[n_static:]
     leaves, treedef = jax.tree.flatten(dynamic)
     program = (jitted, static, treedef, tuple(_signature(x) for x in leaves))
+    found = None
     if program not in _PROGRAMS:
         if cache_dir() is None or not _applies():
             return jitted(*args)
-        lowered = jitted.lower(*args)
-        key = _program_key(lowered, options)
-        compiled = _load(key, lowered.in_tree, lowered.out_tree)
-        if compiled is not None:
-            _PROGRAMS[program] = (compiled, key)
-        else:
-            _PROGRAMS[program] = (_compile(key, lowered), None)
+        found = _Found(jitted, options, args, n_static, out_tree)
+        found.prekey = _prekey(jitted, origin, options, static, leaves, treedef)
+        _PROGRAMS[program] = found.entry()
         if len(_PROGRAMS) > _MAX_PROGRAMS:
             _PROGRAMS.popitem(last=False)
     else:
         _PROGRAMS.move_to_end(program)
-    return _run(_PROGRAMS, program, jitted, args, dynamic)
+    if found is None:
+        found = _Found(jitted, options, args, n_static, out_tree)
+    return _run(_PROGRAMS, program, dynamic, found.compile)
+
+
+class _Found:
+    """The executable of one program of `cached_call`: by its pre-key (no tracing),
+    else by its lowered text; or compiled."""
+
+    def __init__(self, jitted, options, args, n_static, out_tree):
+        self.jitted, self.options, self.args = jitted, options, args
+        self.n_static, self.out_tree = n_static, out_tree
+        self.prekey = None
+
+    @property
+    def in_tree(self):
+        return jax.tree.structure((self.args[self.n_static :], {}))
+
+    def entry(self):
+        """`(executable, key of its disk entry)`, the key None where compiled here."""
+        linked = None if self.prekey is None else _read_link(self.prekey)
+        if linked is not None:
+            key, out_tree = linked
+            out_tree = self.out_tree if out_tree is None else out_tree
+            if out_tree is not None:
+                compiled = _load(key, self.in_tree, out_tree)
+                if compiled is not None:
+                    return compiled, key
+        lowered = self.jitted.lower(*self.args)
+        key = _program_key(lowered, self.options)
+        # (An entry the pre-key named and that did not load is not tried again.)
+        if linked is None or linked[0] != key:
+            compiled = _load(key, lowered.in_tree, lowered.out_tree)
+            if compiled is not None:
+                self._link(key, lowered)
+                return compiled, key
+        return self._compile(key, lowered), None
+
+    def compile(self):
+        """The program compiled (after a loaded executable failed), written under
+        the key of its lowered text."""
+        lowered = self.jitted.lower(*self.args)
+        return self._compile(_program_key(lowered, self.options), lowered)
+
+    def _compile(self, key, lowered):
+        compiled = _compile(key, lowered)
+        self._link(key, lowered)
+        return compiled
+
+    def _link(self, key, lowered):
+        """Records pre-key → `key` where the entry is on disk, and where what the
+        pre-key path loads with (the argument structure, derived from the arguments,
+        and the output structure, pickled or given) is the lowered program's."""
+        path = _path(key)
+        if self.prekey is None or path is None or not os.path.exists(path):
+            return
+        if self.in_tree != lowered.in_tree:
+            return
+        out_tree = lowered.out_tree
+        try:
+            pickled = pickle.loads(pickle.dumps(out_tree)) == out_tree
+        except Exception:  # noqa: BLE001 -- a node type that does not pickle
+            pickled = False
+        if not pickled:
+            if self.out_tree != out_tree:
+                return
+            out_tree = None  # (the caller's, given at every call)
+        _write(_path(self.prekey, ".key"), pickle.dumps((key, out_tree)))
+
+
+def _prekey(jitted, origin, options, static, leaves, treedef):
+    """The pre-key of a program: a digest of everything that determines its lowered
+    text, computed without tracing it; None where a part has no faithful text
+    (module docstring)."""
+    if origin is None:
+        return None
+    factory, *arguments = origin
+    module = getattr(factory, "__module__", None) or ""
+    name = getattr(factory, "__qualname__", "")
+    if not (module.startswith("lagrax.") and faithful.module_level(factory)):
+        return None
+    try:
+        if factory(*arguments) is not jitted:
+            return None
+        text = repr(
+            (
+                _source_digest(),
+                _versions(),
+                _environment(),
+                _settings(),
+                f"{module}.{name}",
+                faithful.text(tuple(arguments)),
+                faithful.text(options),
+                faithful.text(tuple(static)),
+                _tree_text(treedef),
+                [_leaf_text(x) for x in leaves],
+            )
+        )
+    except (faithful.Unfaithful, TypeError, AttributeError):
+        return None
+    return "k" + hashlib.sha256(text.encode()).hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _versions():
+    """The versions of Python and of the libraries whose code the pre-key trusts
+    (`faithful.ROOTS`; lagrax: its source digest)."""
+    found = [sys.version, jax.lib.__version__]
+    for root in faithful.ROOTS[1:]:
+        module = sys.modules.get(root)
+        found.append((root, getattr(module, "__version__", None)))
+    return tuple(found)
+
+
+# The environment variables a program may depend on (read by JAX, XLA, equinox, and
+# the library).
+_VARIABLES = ("JAX_", "XLA_", "EQX_", "LAGRAX_", "TF_")
+
+
+def _settings():
+    """Everything outside the program that changes how it traces and lowers: JAX's
+    configuration (every option, and JAX's own list of what enters a trace, the
+    context managers' values included), equinox's, the environment variables."""
+    from jax._src import config as jax_config  # (JAX has no public trace context)
+
+    context = []
+    for value in jax_config.trace_context():
+        if type(value).__name__ == "AxisEnv":  # (under no transformation: empty)
+            names = value.spmd_axis_names or value.explicit_mesh_axis_names
+            if value.axis_sizes or names:
+                raise faithful.Unfaithful("an axis environment")
+            value = "AxisEnv()"
+        context.append(value)
+    eqx_config = vars(sys.modules["equinox._config"])
+    eqx_values = {k: v for k, v in eqx_config.items() if k.startswith("EQX_")}
+    variables = {
+        k: v
+        for k, v in os.environ.items()
+        if k.startswith(_VARIABLES) and k != "LAGRAX_CACHE_DIR"
+    }
+    return faithful.text((jax.config.values, context, eqx_values, variables))
+
+
+def _tree_text(treedef) -> str:
+    """A tree of tuples, lists, dicts and Nones, written out; other nodes refused."""
+    data = treedef.node_data()
+    if data is None:
+        return "*"
+    node, aux = data
+    if node not in (tuple, list, dict, type(None)):
+        raise faithful.Unfaithful(f"a pytree node {node}")
+    children = ",".join(_tree_text(c) for c in treedef.children())
+    return f"{node.__name__}{faithful.text(aux)}({children})"
+
+
+def _leaf_text(x) -> str:
+    """What a program's lowering takes from an argument: its abstract value and,
+    for a JAX array, its placement and layout."""
+    t = type(x)
+    if t in (bool, int, float, complex):  # (weakly typed; the value an argument)
+        return t.__name__
+    if t is np.ndarray or isinstance(x, np.generic):
+        return f"np({x.shape},{faithful.text(x.dtype)})"
+    if isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer):
+        sharding = faithful.text(x.sharding)
+        dtype = faithful.text(np.dtype(x.dtype))
+        layout = repr(x.format.layout)
+        return f"jax({x.shape},{dtype},{x.weak_type},{x.committed},{sharding},{layout})"
+    raise faithful.Unfaithful(f"an argument of type {t}")
+
+
+def _read_link(prekey):
+    """`(program key, output structure or None)` recorded under `prekey`, or None."""
+    path = _path(prekey, ".key")
+    try:
+        with open(path, "rb") as fh:
+            key, out_tree = pickle.load(fh)
+        os.utime(path)
+    except Exception:  # noqa: BLE001 -- none, or damaged: found by lowering
+        return None
+    if not (isinstance(key, str) and key.startswith("p")):
+        return None
+    if out_tree is not None and not isinstance(out_tree, jax.tree_util.PyTreeDef):
+        return None
+    return key, out_tree
 
 
 def _program_key(lowered, options):
@@ -194,12 +383,12 @@ def _program_key(lowered, options):
     return "p" + hashlib.sha256(text.encode()).hexdigest()
 
 
-def _run(table, slot, jitted, args, call_args):
+def _run(table, slot, call_args, recompile):
     """Runs `table[slot]`'s executable on `call_args`. The first call of one loaded
     from disk is waited for, so that a failure at run time shows here: its entry
-    is then removed, and the program (`jitted` on `args`) compiled, written and
-    run. (An executable without its object code fails at its first kernel; one
-    that lacks only some of it is refused at loading.)"""
+    is then removed, and the program compiled again (`recompile()`, which writes
+    it anew) and run. (An executable without its object code fails at its first
+    kernel; one that lacks only some of it is refused at loading.)"""
     compiled, key = table[slot]
     if key is None:
         return compiled(*call_args)
@@ -207,7 +396,7 @@ def _run(table, slot, jitted, args, call_args):
         out = jax.block_until_ready(compiled(*call_args))
     except jax.errors.JaxRuntimeError:
         _remove(key)
-        compiled = _compile(key, jitted.lower(*args))
+        compiled = recompile()
         out = compiled(*call_args)
     table[slot] = (compiled, None)
     return out
@@ -243,9 +432,11 @@ def _compile(key, lowered):
     return compiled
 
 
-def _path(key):
+def _path(key, suffix=".bin"):
+    """Where the entry `key` is kept (`.bin`: an executable; `.key`: the program
+    key a pre-key names)."""
     folder = cache_dir()
-    return None if folder is None else os.path.join(folder, key + ".bin")
+    return None if folder is None else os.path.join(folder, key + suffix)
 
 
 def _remove(key):
@@ -275,14 +466,24 @@ def _store(key, compiled):
         return
     try:
         payload = serialize_executable.serialize(compiled)[0]
+    except Exception:  # noqa: BLE001 -- a program that cannot be serialized (host
+        return  # callbacks): kept in memory only
+    if _write(path, pickle.dumps(payload)):
+        _evict(os.path.dirname(path))
+
+
+def _write(path, data) -> bool:
+    """Writes `data` to `path` whole or not at all; False where it cannot (a
+    read-only or full disk)."""
+    try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
         with os.fdopen(fd, "wb") as fh:
-            pickle.dump(payload, fh)
+            fh.write(data)
         os.replace(tmp, path)
-        _evict(os.path.dirname(path))
-    except Exception:  # noqa: BLE001 -- a read-only or full disk, or a program that
-        return  # cannot be serialized (host callbacks): kept in memory only
+        return True
+    except OSError:
+        return False
 
 
 def _evict(folder, limit=None):
@@ -291,7 +492,7 @@ def _evict(folder, limit=None):
     limit = MAX_BYTES if limit is None else limit
     entries = []
     for e in os.scandir(folder):
-        if e.name.endswith(".bin") and e.is_file():
+        if e.name.endswith((".bin", ".key")) and e.is_file():
             st = e.stat()
             entries.append((st.st_mtime, st.st_size, e.path))
     total = sum(size for _, size, _ in entries)

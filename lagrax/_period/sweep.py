@@ -252,7 +252,10 @@ def sweep_periods(
         # loads this program instead of compiling it.)
         if is_concrete(q, args):
             jitted = _sweep_jit(L_run, cfg, devices)
-            return executables.cached_call(jitted, None, q, order, *args)
+            origin = (_sweep_jit, L_run, cfg, devices)
+            return executables.cached_call(
+                jitted, None, q, order, *args, origin=origin, out_tree=_OUT_TREE
+            )
         return _sweep_call(L_run, cfg, devices, q, order, *args)
 
     order = _lane_order(q0) if sort else np.arange(n, dtype=np.int32)
@@ -350,7 +353,11 @@ def _sweep_call_jvp(L, m, devices, primals, tangents):
         def jacobian(q0, consts, with_q, wanted):
             jac = _jacobian_jit(L, m, devices, elemental, with_q, wanted)
             options = ELEMENTAL if elemental else None
-            return executables.cached_call(jac, options, q0, order, consts, *rest)
+            origin = (_jacobian_jit, L, m, devices, elemental, with_q, wanted)
+            return executables.cached_call(
+                jac, options, q0, order, consts, *rest, origin=origin,
+                out_tree=_JACOBIAN_OUT_TREE,
+            )  # fmt: skip
 
     (out, useful), dT = forward_mode(
         run, q0, consts, tangents[0], tangents[2], jacobian
@@ -375,8 +382,9 @@ def _jacobian_jit(L, m, devices, elemental, with_q, wanted):
 _sweep_call.defjvp(_sweep_call_jvp, symbolic_zeros=True)
 
 
-# The structure of `_sweep_body`'s outputs.
+# The structure of `_sweep_body`'s outputs, and of its forward jacobian's.
 _OUT_TREE = jax.tree.structure((Periods(*[0] * 5), 0))
+_JACOBIAN_OUT_TREE = jax.tree.structure(((Periods(*[0] * 5), 0), 0))
 
 
 @functools.lru_cache(maxsize=64)
