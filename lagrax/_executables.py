@@ -331,7 +331,14 @@ def _settings():
         for k, v in os.environ.items()
         if k.startswith(_VARIABLES) and k != "LAGRAX_CACHE_DIR"
     }
-    return faithful.text((jax.config.values, context, eqx_values, variables))
+    options = {k: v for k, v in jax.config.values.items() if not _cache_option(k)}
+    return faithful.text((options, context, eqx_values, variables))
+
+
+def _cache_option(name) -> bool:
+    """JAX's options for its persistent compilation cache: where programs come from,
+    not what they are (the CLI turns that cache on in its process)."""
+    return "compilation_cache" in name or "persistent_cache" in name
 
 
 def _tree_text(treedef) -> str:

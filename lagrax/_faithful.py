@@ -17,7 +17,7 @@ other kind raises `Unfaithful` (and the caller keys nothing on it). Admitted:
     jaxprs, walked equation by equation: primitive, operands (variables by order of
     definition, literals by value), parameters, abstract values, equation context;
     any effect is refused;
-- devices (platform, kind, id, process), single-device shardings, and empty meshes;
+- devices (platform, kind, id, process), single-device shardings, empty meshes;
 - the canonical Lagrangian of `lagrax._jaxpr.canonical` by its jaxpr, the literals
     it lifts to arguments written by their type only (their values are arguments).
 
@@ -48,6 +48,8 @@ ROOTS = (
     "numpy",
     "ml_dtypes",
 )
+# Where primitives are defined.
+_JAX_ROOTS = ("lagrax", "jax", "diffrax", "equinox", "lineax", "optimistix")
 # The largest array written by value (bytes).
 MAX_ARRAY = 1 << 16
 
@@ -186,8 +188,8 @@ def _jax_object(x, t) -> str:
     if t is jax.sharding.SingleDeviceSharding:
         (device,) = x.device_set
         return f"single({_jax_object(device, type(device))},{x.memory_kind!r})"
-    if t is jax.sharding.AbstractMesh and x.empty:
-        return "AbstractMesh()"
+    if t in (jax.sharding.AbstractMesh, jax.sharding.Mesh) and x.empty:
+        return f"{t.__name__}()"
     name = f"{t.__module__}.{t.__qualname__}"
     if name == "jax._src.named_sharding.UnspecifiedValue":  # (no public name)
         return "UnspecifiedValue"
@@ -215,7 +217,7 @@ def _scan_primitives():
     _SCANNED[0] = len(sys.modules)
     places = {}
     for module_name, module in list(sys.modules.items()):
-        if module_name.split(".")[0] not in ROOTS or module is None:
+        if module_name.split(".")[0] not in _JAX_ROOTS or module is None:
             continue
         for name, value in list(getattr(module, "__dict__", {}).items()):
             if isinstance(value, jex_core.Primitive):
