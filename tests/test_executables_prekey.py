@@ -121,9 +121,15 @@ def prekeys(monkeypatch, tmp_path, without_jax_cache):
     return prekey
 
 
+def _potential(V):
+    """A Lagrangian of one body and one constant, `V` its only difference."""
+    return lambda q, qdot, t: 0.5 * jnp.sum(qdot**2) - 2.0 * jnp.sum(V(q))
+
+
 def test_what_determines_the_program_changes_the_prekey(prekeys):
     base = prekeys(pendulum.lagrangian(), Q0)
     assert base is not None
+    assert prekeys(_potential(jnp.cos), Q0) != prekeys(_potential(jnp.sin), Q0)
     assert prekeys(pendulum.lagrangian(g=3.0, r=0.5), Q0 + 0.1) == base
     assert prekeys(pendulum.lagrangian(), Q0, rtol=1e-6) == base
     others = [
@@ -238,6 +244,8 @@ def test_distinct_programs_never_share_a_prekey(prekeys):
         (pendulum.lagrangian(), Q0, dict(method="half")),
         (rotating_hoop.lagrangian(), Q0 * 0.5, {}),
         (asymmetric_well.lagrangian(), Q0 * 0.3, {}),
+        (_potential(jnp.cos), Q0, {}),
+        (_potential(jnp.sin), Q0, {}),
     ]
     pairs = {prekeys(L, q0, lower=True, **kw) for L, q0, kw in cases}
     by_prekey = collections.defaultdict(set)
@@ -245,7 +253,7 @@ def test_distinct_programs_never_share_a_prekey(prekeys):
         assert prekey is not None
         by_prekey[prekey].add(key)
     assert all(len(keys) == 1 for keys in by_prekey.values())
-    assert len(by_prekey) == 4
+    assert len(by_prekey) == 6
 
 
 @pytest.mark.slow
