@@ -265,33 +265,70 @@ def _prekey(jitted, origin, options, static, leaves, treedef):
     """The pre-key of a program: a digest of everything that determines its lowered
     text, computed without tracing it; None where a part has no faithful text
     (module docstring)."""
-    if origin is None:
-        return None
-    factory, *arguments = origin
-    module = getattr(factory, "__module__", None) or ""
-    name = getattr(factory, "__qualname__", "")
-    if not (module.startswith("lagrax.") and faithful.module_level(factory)):
+    if origin is None or not _library_function(origin[0]):
         return None
     try:
-        if factory(*arguments) is not jitted:
+        if origin[0](*origin[1:]) is not jitted:
             return None
-        text = repr(
-            (
-                _source_digest(),
-                _versions(),
-                _environment(),
-                _settings(),
-                f"{module}.{name}",
-                faithful.text(tuple(arguments)),
-                faithful.text(options),
-                faithful.text(tuple(static)),
-                _tree_text(treedef),
-                [_leaf_text(x) for x in leaves],
-            )
+        parts = (
+            faithful.text(options),
+            faithful.text(tuple(static)),
+            _tree_text(treedef),
+            [_leaf_text(x) for x in leaves],
         )
+        return _digest("k", origin, parts)
     except (faithful.Unfaithful, TypeError, AttributeError):
         return None
-    return "k" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def _library_function(f) -> bool:
+    module = getattr(f, "__module__", None) or ""
+    return module.startswith("lagrax.") and faithful.module_level(f)
+
+
+def _digest(prefix, origin, parts) -> str:
+    """A digest of `origin` (`(function, *arguments)`) and `parts` with everything
+    outside them that the library's results depend on; `faithful.Unfaithful` where
+    a part has no faithful text."""
+    function, *arguments = origin
+    text = repr(
+        (
+            _source_digest(),
+            _versions(),
+            _environment(),
+            _settings(),
+            f"{function.__module__}.{function.__qualname__}",
+            faithful.text(tuple(arguments)),
+            parts,
+        )
+    )
+    return prefix + hashlib.sha256(text.encode()).hexdigest()
+
+
+def remembered(origin, compute) -> bool:
+    """`compute()`, a bool that `origin` (`(function, *arguments)`, a module-level
+    function of the library and what it is called with) determines, kept on disk
+    under a digest of `origin` where it has a faithful text (as a pre-key): a later
+    process reads it instead of computing it."""
+    path = None
+    if cache_dir() is not None and _applies() and _library_function(origin[0]):
+        try:
+            path = _path(_digest("d", origin, ()), ".key")
+        except (faithful.Unfaithful, TypeError, AttributeError):
+            path = None
+    if path is not None:
+        try:
+            with open(path, "rb") as fh:
+                value = pickle.load(fh)
+            if type(value) is bool:
+                os.utime(path)
+                return value
+        except Exception:  # noqa: BLE001 -- none yet, or damaged: computed
+            pass
+    value = compute()
+    if path is not None and type(value) is bool:
+        _write(path, pickle.dumps(value))
+    return value
 
 
 @functools.lru_cache(maxsize=1)

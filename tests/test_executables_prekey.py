@@ -152,16 +152,19 @@ def test_what_determines_the_program_changes_the_prekey(prekeys):
     assert prekeys(pendulum.lagrangian(), Q0) == base
 
 
+def _own_cos():
+    """cos with a `custom_jvp` rule made anew (a closure: compared by identity)."""
+
+    @jax.custom_jvp
+    def cos(x):
+        return jnp.cos(x)
+
+    cos.defjvp(lambda p, t: (jnp.cos(p[0]), -jnp.sin(p[0]) * t[0]))
+    return cos
+
+
 def test_values_without_a_faithful_text_take_no_prekey(prekeys):
-    def make(g):
-        @jax.custom_jvp
-        def cos(x):
-            return jnp.cos(x)
-
-        cos.defjvp(lambda p, t: (jnp.cos(p[0]), -jnp.sin(p[0]) * t[0]))
-        return lambda q, qdot, t: 0.5 * jnp.sum(qdot**2) + g * jnp.sum(cos(q))
-
-    assert prekeys(make(1.0), Q0) is None
+    assert prekeys(_potential(_own_cos()), Q0) is None
 
     def host_cos(x):
         return np.cos(x)
@@ -325,3 +328,36 @@ def test_a_fresh_process_loads_by_prekey(cache, tmp_path):
     new_process()
     here = lagrax.sweep_periods(pendulum.lagrangian(g=1.7), Q0, **SWEEP)
     assert [float(T) for T in periods.split()] == [float(T) for T in here.periods]
+
+
+def test_the_choice_of_stepper_is_kept_for_later_processes(
+    monkeypatch, tmp_path, without_jax_cache
+):
+    from lagrax._jaxpr.canonical import canonical_lagrangian
+    from lagrax._period import reuse
+
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
+    decided = []
+    resolve = reuse._resolve
+    monkeypatch.setattr(
+        reuse, "_resolve", lambda *a: [decided.append(a[0]), resolve(*a)][1]
+    )
+    solver = lagrax.Taylor(fallback=dfx.Dopri8())
+
+    def choose(V):
+        monkeypatch.setattr(reuse, "_RESOLVED", collections.OrderedDict())
+        L_c, consts = canonical_lagrangian(_potential(V), np.float64)
+        return reuse.resolved_solver(L_c, consts, solver, np.float64)
+
+    # cos has a Taylor recurrence, erf has none: decided once each, then read.
+    assert choose(jnp.cos) == lagrax.Taylor() and len(decided) == 1
+    assert choose(jax.scipy.special.erf) == dfx.Dopri8() and len(decided) == 2
+    assert choose(jnp.cos) == lagrax.Taylor() and len(decided) == 2
+    assert choose(jax.scipy.special.erf) == dfx.Dopri8() and len(decided) == 2
+    assert len(_names(tmp_path, ".key")) == 2
+    # Where the Lagrangian has no faithful text: decided every time, nothing kept.
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path / "other"))
+
+    assert choose(_own_cos()) == lagrax.Taylor() and len(decided) == 3
+    assert choose(_own_cos()) == lagrax.Taylor() and len(decided) == 4
+    assert not (tmp_path / "other").exists()
