@@ -403,6 +403,11 @@ def _leaf_text(x) -> str:
         dtype = faithful.text(np.dtype(x.dtype))
         layout = repr(x.format.layout)
         return f"jax({x.shape},{dtype},{x.weak_type},{x.committed},{sharding},{layout})"
+    aval = getattr(x, "aval", None)
+    if t.__module__.startswith("jax.") and faithful.module_level(t) and aval:
+        # (JAX's host literals, `TypedNdArray`, `TypedFloat`...: typed by their
+        # abstract value, whatever the 64-bit mode)
+        return f"{t.__qualname__}({faithful.aval_text(aval)})"
     raise faithful.Unfaithful(f"an argument of type {t}")
 
 

@@ -231,7 +231,8 @@ def _scan_primitives():
     )
 
 
-def _aval(a) -> str:
+def aval_text(a) -> str:
+    """An abstract value: a `ShapedArray` outside any mesh."""
     if type(a).__name__ != "ShapedArray":
         raise Unfaithful(f"the abstract value {a}")
     if any(type(d) is not int for d in a.shape):
@@ -270,11 +271,11 @@ def _jaxpr(jaxpr, out, lifted=None):
 
     def define(v):
         names[v] = len(names)
-        return f"v{names[v]}:{_aval(v.aval)}"
+        return f"v{names[v]}:{aval_text(v.aval)}"
 
     def operand(i, j, a):
         if isinstance(a, jex_core.Literal):
-            head = f"lit({_aval(a.aval)}"
+            head = f"lit({aval_text(a.aval)}"
             if lifted is not None and (i, j) in lifted:
                 return head + ")"
             return head + "," + _array(np.asarray(a.val)) + ")"
@@ -295,7 +296,7 @@ def _jaxpr(jaxpr, out, lifted=None):
         outs = []
         for v in eqn.outvars:
             if isinstance(v, jex_core.DropVar):
-                outs.append(f"_:{_aval(v.aval)}")
+                outs.append(f"_:{aval_text(v.aval)}")
             else:
                 outs.append(define(v))
         out.append(",".join(outs))
