@@ -12,9 +12,32 @@ serialize_executable`) and loaded in a fraction of a second after:
     batched trajectories), keyed on the text of the lowered program itself (which
     holds everything it computes: a rebuilt Lagrangian with new parameter values that
     reach it as arguments lowers to the same text) and the compile options. A script
-    run again, or a notebook restarted, traces and lowers its programs (a second or
-    two) and loads them instead of compiling (~10 s for a first sweep on a CPU core),
-    as heyoka.py's on-disk cache of compiled code does (entries `p*.bin`).
+    run again, or a notebook restarted, loads them instead of compiling (~10 s for a
+    first sweep on a CPU core), as heyoka.py's on-disk cache of compiled code does
+    (entries `p*.bin`).
+
+Finding a `cached_call` entry by its lowered text costs the tracing and lowering of
+the whole program (seconds for a sweep). A later process finds it without them, by
+its **pre-key**: a digest of everything that determines the lowered text, computed
+from the call's inputs alone: the library's source digest; the versions of Python,
+jax, jaxlib, diffrax, equinox, lineax, optimistix, numpy, ml_dtypes; JAX's
+configuration (every option but those of its persistent cache, and JAX's own list of
+what enters a trace, context managers included); equinox's; the `JAX_`, `XLA_`,
+`EQX_`, `LAGRAX_` and `TF_` environment variables; the devices and host CPU; the
+module-level library function that made the jitted function and its arguments (for
+the sweep: the canonical Lagrangian's jaxpr, the kernel's `Method`, the devices);
+the compile options; the arguments' tree and abstract values (shape, dtype, weak
+type, placement, layout). Every part is written by `lagrax._faithful.text`, which
+admits only kinds whose text says all of them and refuses any other (a function, a
+closure's `custom_jvp` rule, a user's type, an object compared by identity): then
+the call has no pre-key and finds its entry by lowering, as before, never by a
+key that could name another program. A file `k*.key` holds the program key (and
+the output structure, where it pickles) that a pre-key names; it is written where
+the program's entry is on disk and its argument structure, derived from the
+arguments, is the lowered program's. A pre-key that names an entry no longer there,
+or one that fails to load, falls back to lowering (and is written again). Small
+answers that cost a trace (whether the Taylor step covers a Lagrangian) are kept the
+same way (`remembered`, files `d*.key`).
 
 The library never touches JAX's global configuration (its persistent compilation
 cache stays the user's choice): this is its own cache, in `$LAGRAX_CACHE_DIR` or else

@@ -361,3 +361,27 @@ def test_the_choice_of_stepper_is_kept_for_later_processes(
     assert choose(_own_cos()) == lagrax.Taylor() and len(decided) == 3
     assert choose(_own_cos()) == lagrax.Taylor() and len(decided) == 4
     assert not (tmp_path / "other").exists()
+
+
+def test_a_sweeps_derivative_takes_a_prekey(monkeypatch, tmp_path, without_jax_cache):
+    # (Nothing compiled: stopped where the derivative program would be looked up.)
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
+    found = []
+
+    def entry(self):
+        assert self.options is not None  # (the derivative's, with XLA's elemental
+        found.append(self.prekey)  # emitters; the forward sweep's has none)
+        raise _Stop
+
+    monkeypatch.setattr(executables._Found, "entry", entry)
+
+    def prekey(L, **options):
+        monkeypatch.setattr(executables, "_PROGRAMS", collections.OrderedDict())
+        mean = lambda q: lagrax.sweep_periods(L, q, **(SWEEP | options)).periods.mean()
+        with pytest.raises(_Stop):
+            jax.grad(mean)(Q0)
+        return found[-1]
+
+    first = prekey(pendulum.lagrangian(g=1.3))
+    assert first is not None and prekey(pendulum.lagrangian(g=2.0)) == first
+    assert prekey(pendulum.lagrangian(), method="half") not in (None, first)
