@@ -300,8 +300,8 @@ def _prekey(jitted, origin, options, static, leaves, treedef):
             [_leaf_text(x) for x in leaves],
         )
         return _digest("k", origin, parts)
-    except (faithful.Unfaithful, TypeError, AttributeError):
-        return None
+    except Exception:  # noqa: BLE001 -- no faithful text, or JAX's private trace
+        return None  # context moved: no pre-key (found by lowering), never a wrong one
 
 
 def _library_function(f) -> bool:
@@ -337,7 +337,7 @@ def remembered(origin, compute) -> bool:
     if cache_dir() is not None and _applies() and _library_function(origin[0]):
         try:
             path = _path(_digest("d", origin, ()), ".key")
-        except (faithful.Unfaithful, TypeError, AttributeError):
+        except Exception:  # noqa: BLE001 -- as for a pre-key: computed, not kept
             path = None
     if path is not None:
         try:
