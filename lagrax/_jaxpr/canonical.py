@@ -107,9 +107,11 @@ class _WithParameters(eqx.Module):
         return eqx.combine(dynamic, self.static)(q, qdot, t)
 
 
-def canonical_lagrangian(L: Callable, dtype) -> tuple[CanonicalLagrangian, list]:
+def canonical_lagrangian(
+    L: Callable, dtype, n: int = 1
+) -> tuple[CanonicalLagrangian, list]:
     """`(L_c, consts)` with `L_c(q, qdot, t, *consts) == L(q, qdot, t)` for `q`,
-    `qdot` of shape `(1,)` and a scalar `t` of `dtype`: `L_c` is equal (the same
+    `qdot` of shape `(n,)` and a scalar `t` of `dtype`: `L_c` is equal (the same
     object) for every `L` that computes the same jaxpr up to its floating-point
     constants, which are `consts` (module docstring). The float array fields of a
     pytree `L` (an `eqx.Module`) come first in `consts`."""
@@ -125,20 +127,20 @@ def canonical_lagrangian(L: Callable, dtype) -> tuple[CanonicalLagrangian, list]
             known = _BY_OBJECT.get(L)
         except TypeError:  # not weakly referenceable or not hashable
             known = None
-        if known is not None and dtype in known:
-            canon, consts = known[dtype]
+        if known is not None and (dtype, n) in known:
+            canon, consts = known[dtype, n]
             return _intern(canon), list(consts)
     dynamic, static = eqx.partition(L, eqx.is_inexact_array)
     arrays, treedef = jax.tree.flatten(dynamic)
     f = _WithParameters(static, treedef) if arrays else L
-    z = np.zeros((1,), dtype)
+    z = np.zeros((n,), dtype)
     closed = jax.make_jaxpr(f)(z, z, np.zeros((), dtype), *arrays)
     canon, lifted_values, kept_consts = _canonical(closed, len(arrays))
     canon = _intern(canon)
     consts = list(arrays) + lifted_values + kept_consts
     if clean and not any(isinstance(c, jax.core.Tracer) for c in consts):
         try:
-            _BY_OBJECT.setdefault(L, {})[dtype] = (canon, tuple(consts))
+            _BY_OBJECT.setdefault(L, {})[dtype, n] = (canon, tuple(consts))
         except TypeError:
             pass
     return canon, consts

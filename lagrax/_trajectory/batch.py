@@ -35,6 +35,7 @@ from .._checks import (
 )
 from .._custom_types import GeneralizedForce, Lagrangian
 from .._executables import cached_call
+from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import ELEMENTAL
 from .._stepper.base import LaneField
 from .._stepper.taylor import TaylorStepper
@@ -122,9 +123,12 @@ class SystemTaylorStepper(TaylorStepper):
 
 
 class _Config(eqx.Module):
-    """What the compiled loop depends on besides array values (hashable)."""
+    """What the compiled loop depends on besides array values (hashable). `L`: the
+    canonical Lagrangian (equal for every `L` with the same body: a rebuilt `L` with
+    new parameter values reuses the program, its values the loop's `consts`)."""
 
-    field: _LagrangeVectorField
+    L: CanonicalLagrangian
+    force: GeneralizedForce | None
     order: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     n_save: int = eqx.field(static=True)
@@ -132,7 +136,7 @@ class _Config(eqx.Module):
     max_steps: int = eqx.field(static=True)
 
 
-def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
+def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
     """All releases through `cfg.width` refilling lanes of one device.
 
     Returns the saved states `(B, T, 2n)` (`T` = the save times, then the end if
@@ -147,7 +151,9 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts):
     dtype = q0.dtype
     W = min(cfg.width, B)
     M = cfg.n_save
-    field = cfg.field
+    field = _LagrangeVectorField(
+        lambda q, qdot, t: cfg.L(q, qdot, t, *consts), cfg.force
+    )
 
     def f(tau, ys, params):
         q, w = ys
@@ -299,7 +305,7 @@ def _compiled(cpu, devices):
             return jax.shard_map(
                 functools.partial(_run, cfg),
                 mesh=mesh,
-                in_specs=(lanes,) * 6 + (rep,),
+                in_specs=(lanes,) * 6 + (rep, rep),
                 out_specs=lanes,
                 check_vma=False,
             )(*args)
@@ -351,7 +357,9 @@ def simulate_batch(
     saved states from the steps' polynomials. Any other solver, or a `SaveAt` or
     keyword the loop does not take (`t0=True`, `steps`, `dense`, `fn`, `event`,
     `adjoint`, a `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate`
-    with the same arguments.
+    with the same arguments. The loop is compiled per body of `L`: a rebuilt `L` with
+    new parameter values reuses it (they reach it as arguments), and on a CPU a later
+    process loads it from the library's disk cache without tracing it.
 
     **Arguments:** as `lagrax.simulate`, with `q0`, `qdot0` of shape `(B, n)`,
     `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, and
@@ -416,8 +424,11 @@ def simulate_batch(
         sol = jax.vmap(one)(q0, qdot0, t0, t1, rtol, atol)
         return _raise_if_failed(sol, throw)
     ts, save_t1 = plan
+    L_c, consts = canonical_lagrangian(L, dtype, q0.shape[1])
+    consts = tuple(consts)
     cfg = _Config(
-        field=_LagrangeVectorField(L, force),
+        L=L_c,
+        force=force,
         order=solver.order,
         width=width,
         n_save=0 if ts is None else int(ts.shape[0]),
@@ -432,11 +443,14 @@ def simulate_batch(
             jnp.concatenate([a, jnp.repeat(a[-1:], D - B % D, 0)]) for a in args
         )
     jitted = _compiled(cpu, devices[:D])
-    if is_concrete(args, ts_arr):  # (a later process loads it from disk)
-        options = ELEMENTAL if cpu else None
-        out = cached_call(jitted, options, cfg, *args, ts_arr, n_static=1)
+    if is_concrete(args, ts_arr, consts):  # (a later process loads it from disk,
+        options = ELEMENTAL if cpu else None  # found by its pre-key: no tracing)
+        out = cached_call(
+            jitted, options, cfg, *args, ts_arr, consts, n_static=1,
+            origin=(_compiled, cpu, devices[:D]),
+        )  # fmt: skip
     else:
-        out = jitted(cfg, *args, ts_arr)
+        out = jitted(cfg, *args, ts_arr, consts)
     ts_out, qs, vs, result, nsteps, zeros = _assemble(
         B, q0.shape[1], ts is not None, save_t1, *out, ts_arr
     )
