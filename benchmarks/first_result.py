@@ -24,7 +24,9 @@ enable one are removed from the workers' environment), float64:
 - the CLI's default job (`python -m lagrax sweep --quiet`) from an empty cache.
 - a script run again: the sweep of 4096 amplitudes in three processes sharing the
   library's disk cache of executables (empty, then filled; the third with another
-  g). Every other measurement runs with that cache off (`LAGRAX_CACHE_DIR=""`),
+  g); `simulate_batch` of 256 double pendulums (Taylor-16, t = 10) likewise, the
+  first process also with a rebuilt `L` (another g). Every other measurement runs
+  with that cache off (`LAGRAX_CACHE_DIR=""`),
   except the CLI's, which runs with an empty home (its own caches empty).
 - the tape path (`LAGRAX_TAPE_TIER=1`: L as data, one executable per machine kept
   in the library's own cache): a new Lagrangian (g = 1.3) in a fresh process with
@@ -250,6 +252,44 @@ def work_simulate(args):
     return row
 
 
+def work_batch(args):
+    """`simulate_batch` of `n` double pendulums (Taylor-16, t = 10): the first call,
+    a steady one, and with `--rebuilt` the same body with another g."""
+    jax, lagrax, row, stages = _jax_import()
+    import jax.numpy as jnp
+    import numpy as np
+
+    from lagrax.systems import double_pendulum
+
+    q0 = jnp.asarray(_releases(args.n))
+
+    def run(g):
+        sol = lagrax.simulate_batch(
+            double_pendulum.lagrangian(g=g),
+            q0,
+            jnp.zeros_like(q0),
+            0.0,
+            10.0,
+            solver=lagrax.Taylor(order=16),
+            rtol=3e-11,
+            atol=3e-11,
+            throw=False,
+        )
+        return sol.ys[0][:, -1]
+
+    g = 1.0 if args.g is None else args.g
+    out, times = _timed(jax, lambda: run(g), "first", stages)
+    row.update(times)
+    out, times = _timed(jax, lambda: run(g), "steady")
+    row.update(
+        times, n=args.n, failed=int((~np.isfinite(np.asarray(out))).any(1).sum())
+    )
+    if args.rebuilt:
+        other, times = _timed(jax, lambda: run(g + 1.0), "rebuilt", stages)
+        row.update(times, rebuilt_differs=bool(not np.allclose(other, out)))
+    return row
+
+
 def work_heyoka(args):
     import heyoka as hy
     import numpy as np
@@ -303,6 +343,7 @@ WORKERS = dict(
     tape=work_tape,
     grad=work_grad,
     simulate=work_simulate,
+    batch=work_batch,
     heyoka=work_heyoka,
 )
 
@@ -410,6 +451,17 @@ def main():
         ]
     for name, row in zip(("empty", "filled", "filled, new g"), out["rerun"]):
         print(f"rerun, cache {name}", json.dumps(row))
+    # `simulate_batch` of 256 double pendulums likewise, with a rebuilt L (another
+    # g) in the first process.
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(LAGRAX_CACHE_DIR=cache)
+        out["batch_rerun"] = [
+            spawn(c, "batch", env=env, n=256, rebuilt=True),
+            spawn(c, "batch", env=env, n=256),
+            spawn(c, "batch", env=env, n=256, g=2.0),
+        ]
+    for name, row in zip(("empty", "filled", "filled, new g"), out["batch_rerun"]):
+        print(f"simulate_batch, cache {name}", json.dumps(row))
     with tempfile.TemporaryDirectory() as cache:
         env = dict(LAGRAX_TAPE_TIER="1", LAGRAX_CACHE_DIR=cache)
         out["tape_cold"] = spawn(c, "tape", env=env, n=4096)
