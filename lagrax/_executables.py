@@ -12,9 +12,32 @@ serialize_executable`) and loaded in a fraction of a second after:
     batched trajectories), keyed on the text of the lowered program itself (which
     holds everything it computes: a rebuilt Lagrangian with new parameter values that
     reach it as arguments lowers to the same text) and the compile options. A script
-    run again, or a notebook restarted, traces and lowers its programs (a second or
-    two) and loads them instead of compiling (~10 s for a first sweep on a CPU core),
-    as heyoka.py's on-disk cache of compiled code does (entries `p*.bin`).
+    run again, or a notebook restarted, loads them instead of compiling (~10 s for a
+    first sweep on a CPU core), as heyoka.py's on-disk cache of compiled code does
+    (entries `p*.bin`).
+
+Finding a `cached_call` entry by its lowered text costs the tracing and lowering of
+the whole program (seconds for a sweep). A later process finds it without them, by
+its **pre-key**: a digest of everything that determines the lowered text, computed
+from the call's inputs alone: the library's source digest; the versions of Python,
+jax, jaxlib, diffrax, equinox, lineax, optimistix, numpy, ml_dtypes; JAX's
+configuration (every option but those of its persistent cache, and JAX's own list of
+what enters a trace, context managers included); equinox's; the `JAX_`, `XLA_`,
+`EQX_`, `LAGRAX_` and `TF_` environment variables; the devices and host CPU; the
+module-level library function that made the jitted function and its arguments (for
+the sweep: the canonical Lagrangian's jaxpr, the kernel's `Method`, the devices);
+the compile options; the arguments' tree and abstract values (shape, dtype, weak
+type, placement, layout). Every part is written by `lagrax._faithful.text`, which
+admits only kinds whose text says all of them and refuses any other (a function, a
+closure's `custom_jvp` rule, a user's type, an object compared by identity): then
+the call has no pre-key and finds its entry by lowering, as before, never by a
+key that could name another program. A file `k*.key` holds the program key (and
+the output structure, where it pickles) that a pre-key names; it is written where
+the program's entry is on disk and its argument structure, derived from the
+arguments, is the lowered program's. A pre-key that names an entry no longer there,
+or one that fails to load, falls back to lowering (and is written again). Small
+answers that cost a trace (whether the Taylor step covers a Lagrangian) are kept the
+same way (`remembered`, files `d*.key`).
 
 The library never touches JAX's global configuration (its persistent compilation
 cache stays the user's choice): this is its own cache, in `$LAGRAX_CACHE_DIR` or else
@@ -41,10 +64,14 @@ import functools
 import hashlib
 import os
 import pickle
+import sys
 import tempfile
 
 import jax
+import numpy as np
 from jax.experimental import serialize_executable
+
+from . import _faithful as faithful
 
 
 # Compiled programs of this process: by key (`call`), and by program and argument
@@ -140,7 +167,7 @@ def call(jitted, static, out_tree, *args):
             _LOADED[key] = (compiled, key)
         else:
             _LOADED[key] = (_compile(key, jitted.lower(*args)), None)
-    return _run(_LOADED, key, jitted, args, args)
+    return _run(_LOADED, key, args, lambda: _compile(key, jitted.lower(*args)))
 
 
 def _applies() -> bool:
@@ -163,30 +190,264 @@ def _signature(x):
     )
 
 
-def cached_call(jitted, options, *args, n_static=0):
+def cached_call(jitted, options, *args, n_static=0, origin=None, out_tree=None):
     """`jitted(*args)` (all of `args` concrete; the first `n_static` are `jitted`'s
     static arguments) through the executable of its lowered program: from this
     process's table, else from disk, else compiled and written to disk.
     `options`: the `compiler_options` `jitted` was made with (they are not in the
-    lowered text)."""
+    lowered text). `origin`: `(factory, *arguments)`, a module-level function of the
+    library with `factory(*arguments) is jitted`: with it, a later process finds the
+    entry by its pre-key, without tracing (module docstring). `out_tree`: the
+    structure of `jitted`'s outputs, where a pickled one is not equal to it (an
+    `equinox.Module`'s)."""
     static, dynamic = args[:n_static], args[n_static:]
     leaves, treedef = jax.tree.flatten(dynamic)
     program = (jitted, static, treedef, tuple(_signature(x) for x in leaves))
+    found = None
     if program not in _PROGRAMS:
         if cache_dir() is None or not _applies():
             return jitted(*args)
-        lowered = jitted.lower(*args)
-        key = _program_key(lowered, options)
-        compiled = _load(key, lowered.in_tree, lowered.out_tree)
-        if compiled is not None:
-            _PROGRAMS[program] = (compiled, key)
-        else:
-            _PROGRAMS[program] = (_compile(key, lowered), None)
+        found = _Found(jitted, options, args, n_static, out_tree)
+        found.prekey = _prekey(jitted, origin, options, static, leaves, treedef)
+        _PROGRAMS[program] = found.entry()
         if len(_PROGRAMS) > _MAX_PROGRAMS:
             _PROGRAMS.popitem(last=False)
     else:
         _PROGRAMS.move_to_end(program)
-    return _run(_PROGRAMS, program, jitted, args, dynamic)
+    if found is None:
+        found = _Found(jitted, options, args, n_static, out_tree)
+    return _run(_PROGRAMS, program, dynamic, found.compile)
+
+
+class _Found:
+    """The executable of one program of `cached_call`: by its pre-key (no tracing),
+    else by its lowered text; or compiled."""
+
+    def __init__(self, jitted, options, args, n_static, out_tree):
+        self.jitted, self.options, self.args = jitted, options, args
+        self.n_static, self.out_tree = n_static, out_tree
+        self.prekey = None
+
+    @property
+    def in_tree(self):
+        return jax.tree.structure((self.args[self.n_static :], {}))
+
+    def entry(self):
+        """`(executable, key of its disk entry)`, the key None where compiled here."""
+        linked = None if self.prekey is None else _read_link(self.prekey)
+        if linked is not None:
+            key, out_tree = linked
+            out_tree = self.out_tree if out_tree is None else out_tree
+            if out_tree is not None:
+                compiled = _load(key, self.in_tree, out_tree)
+                if compiled is not None:
+                    return compiled, key
+        lowered = self.jitted.lower(*self.args)
+        key = _program_key(lowered, self.options)
+        # (An entry the pre-key named and that did not load is not tried again.)
+        if linked is None or linked[0] != key:
+            compiled = _load(key, lowered.in_tree, lowered.out_tree)
+            if compiled is not None:
+                self._link(key, lowered)
+                return compiled, key
+        return self._compile(key, lowered), None
+
+    def compile(self):
+        """The program compiled (after a loaded executable failed), written under
+        the key of its lowered text."""
+        lowered = self.jitted.lower(*self.args)
+        return self._compile(_program_key(lowered, self.options), lowered)
+
+    def _compile(self, key, lowered):
+        compiled = _compile(key, lowered)
+        self._link(key, lowered)
+        return compiled
+
+    def _link(self, key, lowered):
+        """Records pre-key → `key` where the entry is on disk, and where what the
+        pre-key path loads with (the argument structure, derived from the arguments,
+        and the output structure, pickled or given) is the lowered program's."""
+        path = _path(key)
+        if self.prekey is None or path is None or not os.path.exists(path):
+            return
+        if self.in_tree != lowered.in_tree:
+            return
+        out_tree = lowered.out_tree
+        try:
+            pickled = pickle.loads(pickle.dumps(out_tree)) == out_tree
+        except Exception:  # noqa: BLE001 -- a node type that does not pickle
+            pickled = False
+        if not pickled:
+            if self.out_tree != out_tree:
+                return
+            out_tree = None  # (the caller's, given at every call)
+        _write(_path(self.prekey, ".key"), pickle.dumps((key, out_tree)))
+
+
+def _prekey(jitted, origin, options, static, leaves, treedef):
+    """The pre-key of a program: a digest of everything that determines its lowered
+    text, computed without tracing it; None where a part has no faithful text
+    (module docstring)."""
+    if origin is None or not _library_function(origin[0]):
+        return None
+    try:
+        if origin[0](*origin[1:]) is not jitted:
+            return None
+        parts = (
+            faithful.text(options),
+            faithful.text(tuple(static)),
+            _tree_text(treedef),
+            [_leaf_text(x) for x in leaves],
+        )
+        return _digest("k", origin, parts)
+    except Exception:  # noqa: BLE001 -- no faithful text, or JAX's private trace
+        return None  # context moved: no pre-key (found by lowering), never a wrong one
+
+
+def _library_function(f) -> bool:
+    module = getattr(f, "__module__", None) or ""
+    return module.startswith("lagrax.") and faithful.module_level(f)
+
+
+def _digest(prefix, origin, parts) -> str:
+    """A digest of `origin` (`(function, *arguments)`) and `parts` with everything
+    outside them that the library's results depend on; `faithful.Unfaithful` where
+    a part has no faithful text."""
+    function, *arguments = origin
+    text = repr(
+        (
+            _source_digest(),
+            _versions(),
+            _environment(),
+            _settings(),
+            f"{function.__module__}.{function.__qualname__}",
+            faithful.text(tuple(arguments)),
+            parts,
+        )
+    )
+    return prefix + hashlib.sha256(text.encode()).hexdigest()
+
+
+def remembered(origin, compute) -> bool:
+    """`compute()`, a bool that `origin` (`(function, *arguments)`, a module-level
+    function of the library and what it is called with) determines, kept on disk
+    under a digest of `origin` where it has a faithful text (as a pre-key): a later
+    process reads it instead of computing it."""
+    path = None
+    if cache_dir() is not None and _applies() and _library_function(origin[0]):
+        try:
+            path = _path(_digest("d", origin, ()), ".key")
+        except Exception:  # noqa: BLE001 -- as for a pre-key: computed, not kept
+            path = None
+    if path is not None:
+        try:
+            with open(path, "rb") as fh:
+                value = pickle.load(fh)
+            if type(value) is bool:
+                os.utime(path)
+                return value
+        except Exception:  # noqa: BLE001 -- none yet, or damaged: computed
+            pass
+    value = compute()
+    if path is not None and type(value) is bool:
+        _write(path, pickle.dumps(value))
+    return value
+
+
+@functools.lru_cache(maxsize=1)
+def _versions():
+    """The versions of Python and of the libraries whose code the pre-key trusts
+    (`faithful.ROOTS`; lagrax: its source digest)."""
+    found = [sys.version, jax.lib.__version__]
+    for root in faithful.ROOTS[1:]:
+        module = sys.modules.get(root)
+        found.append((root, getattr(module, "__version__", None)))
+    return tuple(found)
+
+
+# The environment variables a program may depend on (read by JAX, XLA, equinox, and
+# the library).
+_VARIABLES = ("JAX_", "XLA_", "EQX_", "LAGRAX_", "TF_")
+
+
+def _settings():
+    """Everything outside the program that changes how it traces and lowers: JAX's
+    configuration (every option, and JAX's own list of what enters a trace, the
+    context managers' values included), equinox's, the environment variables."""
+    from jax._src import config as jax_config  # (JAX has no public trace context)
+
+    context = []
+    for value in jax_config.trace_context():
+        if type(value).__name__ == "AxisEnv":  # (under no transformation: empty)
+            names = value.spmd_axis_names or value.explicit_mesh_axis_names
+            if value.axis_sizes or names:
+                raise faithful.Unfaithful("an axis environment")
+            value = "AxisEnv()"
+        context.append(value)
+    eqx_config = vars(sys.modules["equinox._config"])
+    eqx_values = {k: v for k, v in eqx_config.items() if k.startswith("EQX_")}
+    variables = {
+        k: v
+        for k, v in os.environ.items()
+        if k.startswith(_VARIABLES) and k != "LAGRAX_CACHE_DIR"
+    }
+    options = {k: v for k, v in jax.config.values.items() if not _cache_option(k)}
+    return faithful.text((options, context, eqx_values, variables))
+
+
+def _cache_option(name) -> bool:
+    """JAX's options for its persistent compilation cache: where programs come from,
+    not what they are (the CLI turns that cache on in its process)."""
+    return "compilation_cache" in name or "persistent_cache" in name
+
+
+def _tree_text(treedef) -> str:
+    """A tree of tuples, lists, dicts and Nones, written out; other nodes refused."""
+    data = treedef.node_data()
+    if data is None:
+        return "*"
+    node, aux = data
+    if node not in (tuple, list, dict, type(None)):
+        raise faithful.Unfaithful(f"a pytree node {node}")
+    children = ",".join(_tree_text(c) for c in treedef.children())
+    return f"{node.__name__}{faithful.text(aux)}({children})"
+
+
+def _leaf_text(x) -> str:
+    """What a program's lowering takes from an argument: its abstract value and,
+    for a JAX array, its placement and layout."""
+    t = type(x)
+    if t in (bool, int, float, complex):  # (weakly typed; the value an argument)
+        return t.__name__
+    if t is np.ndarray or isinstance(x, np.generic):
+        return f"np({x.shape},{faithful.text(x.dtype)})"
+    if isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer):
+        sharding = faithful.text(x.sharding)
+        dtype = faithful.text(np.dtype(x.dtype))
+        layout = repr(x.format.layout)
+        return f"jax({x.shape},{dtype},{x.weak_type},{x.committed},{sharding},{layout})"
+    aval = getattr(x, "aval", None)
+    if t.__module__.startswith("jax.") and faithful.module_level(t) and aval:
+        # (JAX's host literals, `TypedNdArray`, `TypedFloat`...: typed by their
+        # abstract value, whatever the 64-bit mode)
+        return f"{t.__qualname__}({faithful.aval_text(aval)})"
+    raise faithful.Unfaithful(f"an argument of type {t}")
+
+
+def _read_link(prekey):
+    """`(program key, output structure or None)` recorded under `prekey`, or None."""
+    path = _path(prekey, ".key")
+    try:
+        with open(path, "rb") as fh:
+            key, out_tree = pickle.load(fh)
+        os.utime(path)
+    except Exception:  # noqa: BLE001 -- none, or damaged: found by lowering
+        return None
+    if not (isinstance(key, str) and key.startswith("p")):
+        return None
+    if out_tree is not None and not isinstance(out_tree, jax.tree_util.PyTreeDef):
+        return None
+    return key, out_tree
 
 
 def _program_key(lowered, options):
@@ -194,12 +455,12 @@ def _program_key(lowered, options):
     return "p" + hashlib.sha256(text.encode()).hexdigest()
 
 
-def _run(table, slot, jitted, args, call_args):
+def _run(table, slot, call_args, recompile):
     """Runs `table[slot]`'s executable on `call_args`. The first call of one loaded
     from disk is waited for, so that a failure at run time shows here: its entry
-    is then removed, and the program (`jitted` on `args`) compiled, written and
-    run. (An executable without its object code fails at its first kernel; one
-    that lacks only some of it is refused at loading.)"""
+    is then removed, and the program compiled again (`recompile()`, which writes
+    it anew) and run. (An executable without its object code fails at its first
+    kernel; one that lacks only some of it is refused at loading.)"""
     compiled, key = table[slot]
     if key is None:
         return compiled(*call_args)
@@ -207,7 +468,7 @@ def _run(table, slot, jitted, args, call_args):
         out = jax.block_until_ready(compiled(*call_args))
     except jax.errors.JaxRuntimeError:
         _remove(key)
-        compiled = _compile(key, jitted.lower(*args))
+        compiled = recompile()
         out = compiled(*call_args)
     table[slot] = (compiled, None)
     return out
@@ -243,9 +504,11 @@ def _compile(key, lowered):
     return compiled
 
 
-def _path(key):
+def _path(key, suffix=".bin"):
+    """Where the entry `key` is kept (`.bin`: an executable; `.key`: the program
+    key a pre-key names)."""
     folder = cache_dir()
-    return None if folder is None else os.path.join(folder, key + ".bin")
+    return None if folder is None else os.path.join(folder, key + suffix)
 
 
 def _remove(key):
@@ -275,14 +538,24 @@ def _store(key, compiled):
         return
     try:
         payload = serialize_executable.serialize(compiled)[0]
+    except Exception:  # noqa: BLE001 -- a program that cannot be serialized (host
+        return  # callbacks): kept in memory only
+    if _write(path, pickle.dumps(payload)):
+        _evict(os.path.dirname(path))
+
+
+def _write(path, data) -> bool:
+    """Writes `data` to `path` whole or not at all; False where it cannot (a
+    read-only or full disk)."""
+    try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
         with os.fdopen(fd, "wb") as fh:
-            pickle.dump(payload, fh)
+            fh.write(data)
         os.replace(tmp, path)
-        _evict(os.path.dirname(path))
-    except Exception:  # noqa: BLE001 -- a read-only or full disk, or a program that
-        return  # cannot be serialized (host callbacks): kept in memory only
+        return True
+    except OSError:
+        return False
 
 
 def _evict(folder, limit=None):
@@ -291,7 +564,7 @@ def _evict(folder, limit=None):
     limit = MAX_BYTES if limit is None else limit
     entries = []
     for e in os.scandir(folder):
-        if e.name.endswith(".bin") and e.is_file():
+        if e.name.endswith((".bin", ".key")) and e.is_file():
             st = e.stat()
             entries.append((st.st_mtime, st.st_size, e.path))
     total = sum(size for _, size, _ in entries)

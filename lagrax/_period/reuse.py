@@ -12,7 +12,9 @@ import collections
 import jax
 import numpy as np
 
+from .. import _executables as executables
 from .._jaxpr.canonical import canonical_lagrangian
+from .._taylor.solver import Taylor
 from .solver import resolve_solver
 
 
@@ -38,12 +40,24 @@ def resolved_solver(L_c, consts, solver, dtype):
     except TypeError:  # an unhashable solver: decide anew
         return _resolve(L_c, consts, solver, dtype)
     if found is None:
-        found = _RESOLVED[key] = _resolve(L_c, consts, solver, dtype)
+        found = _RESOLVED[key] = _resolve_kept(L_c, consts, solver, dtype)
         if len(_RESOLVED) > _MAX_RESOLVED:
             _RESOLVED.popitem(last=False)
     else:
         _RESOLVED.move_to_end(key)
     return found
+
+
+def _resolve_kept(L_c, consts, solver, dtype):
+    """`_resolve`, its answer (Taylor, or its fallback) kept on disk with the
+    compiled programs for later processes: deciding traces the order-K Taylor
+    program, about as long as loading a sweep's executable."""
+    if not (isinstance(solver, Taylor) and solver.fallback is not None):
+        return solver
+    plain = Taylor(order=solver.order, max_step=solver.max_step)
+    decide = lambda: _resolve(L_c, consts, solver, dtype) is not solver.fallback
+    origin = (resolved_solver, L_c, np.dtype(dtype).name, solver)
+    return plain if executables.remembered(origin, decide) else solver.fallback
 
 
 def _resolve(L_c, consts, solver, dtype):

@@ -60,7 +60,7 @@ class Taylor(AbstractTaylorSolver):
     elemental CPU emitters (the compile option `{"xla_cpu_use_fusion_emitters":
     False}`), with which it stays one vectorized loop; inside a `jax.jit` of your
     own, pass that option to your `jit` (XLA's default CPU emitters recompute parts
-    of such a program, measured ~40x slower for the double pendulum at order 12).
+    of such a program: hundreds of times slower for the double pendulum at order 12).
 
     In the period kernel, the acceleration's jaxpr must consist of primitives with a
     recurrence. For one that has none, `Taylor()` raises

@@ -142,6 +142,10 @@ def simulate(
     `lagrax.accelerations` using `diffrax.diffeqsolve`. Works under `jit` and `vmap`
     (over `q0`, `qdot0`, times, tolerances); times and tolerances are arrays, so
     changing them does not recompile. $t_1 < t_0$ integrates backwards in time.
+    Many releases at once: `lagrax.simulate_batch` (lanes refilled as trajectories
+    end); under `vmap` on a GPU, past ~10^5 releases map in pieces
+    (`jax.lax.map(f, xs, batch_size=100_000)` inside your `jit`): XLA compiles one
+    very wide batch into a slower program (benchmarks/README.md).
 
     **Arguments:**
 
