@@ -37,6 +37,9 @@ FLOOR = 1e-14
 # for every system here).
 SOLVERS = [lagrax.Taylor(), dfx.Dopri8()]
 solvers = pytest.mark.parametrize("solver", SOLVERS, ids=["taylor", "dopri8"])
+# The pendulum's amplitudes wherever the test allows: one shape, so that the tests in
+# this file (one process under `--dist loadfile`) reuse one compiled sweep.
+A = jnp.linspace(0.01, 3.1, 256)
 
 
 def _check_bound(res, exact, *, spread=100.0):
@@ -53,8 +56,8 @@ def _check_bound(res, exact, *, spread=100.0):
 
 
 def test_the_default_steps_with_taylor_where_it_can():
+    assert lagrax.sweep_periods(PENDULUM, A).solver == lagrax.Taylor()
     a = jnp.linspace(0.1, 3.0, 8)
-    assert lagrax.sweep_periods(PENDULUM, a).solver == lagrax.Taylor()
     # `erf` has no Taylor recurrence here: the default falls back to Dopri8 ...
     erf_well = lambda q, qd, t: 0.5 * qd[0] ** 2 - jax.scipy.special.erf(q[0]) ** 2
     res = lagrax.sweep_periods(erf_well, a)
@@ -87,10 +90,9 @@ def test_the_default_falls_back_where_the_program_is_too_large_to_unroll():
 
 @solvers
 def test_pendulum_default_method_meets_1e12_with_bounded_estimates(solver):
-    a = jnp.linspace(0.01, 3.1, 256)
-    res = lagrax.sweep_periods(PENDULUM, a, solver=solver)
+    res = lagrax.sweep_periods(PENDULUM, A, solver=solver)
     assert np.all(np.asarray(res.status) == SUCCESS)
-    true = _check_bound(res, pendulum.period(a))
+    true = _check_bound(res, pendulum.period(A))
     assert true.max() <= 1e-12
 
 
@@ -350,15 +352,14 @@ def test_the_bound_vouches_without_a_second_solve():
     # With the defaults (Taylor, "matched") the estimate is the first-order bound of
     # the solve itself: on the pendulum it vouches for every lane, so no lane is
     # solved again (the same steps as without an estimate), and it bounds the error.
-    a = jnp.linspace(0.01, 3.1, 128)
-    res = lagrax.sweep_periods(PENDULUM, a)
-    bare = lagrax.sweep_periods(PENDULUM, a, error_estimate=False)
+    res = lagrax.sweep_periods(PENDULUM, A)
+    bare = lagrax.sweep_periods(PENDULUM, A, error_estimate=False)
     assert np.array_equal(np.asarray(res.num_steps), np.asarray(bare.num_steps))
     # The same steps; the last bits may differ: without the sums the Taylor step
     # computes its sines with lagrax's vectorized sine, with them the C library's
     # (within 1 ulp of each other; see `_run_queue`).
     np.testing.assert_allclose(res.periods, bare.periods, rtol=1e-14, atol=0)
-    _check_bound(res, pendulum.period(a))
+    _check_bound(res, pendulum.period(A))
 
 
 def test_the_far_turning_points_band_costs_nothing_in_a_harmonic_well():

@@ -143,11 +143,12 @@ def test_progress_reported_as_the_sweep_goes(mixed_sweep):
     )
     assert seen[-1] == (11, 11)
     np.testing.assert_array_equal(res.status, ref.status)
-    # A bigger batch is reported in pieces, counts increasing to the total.
+    # A bigger batch is reported in pieces, counts increasing to the total (pieces
+    # of the size the call above ran in: its compiled program again).
     seen = []
     many = jnp.asarray(np.tile(q0, 12))
     res = lagrax.sweep_periods(
-        L, many, chunk_size=1, progress=lambda *a: seen.append(a), **OPTIONS
+        L, many, chunk_size=4, progress=lambda *a: seen.append(a), **OPTIONS
     )
     done = [d for d, _ in seen]
     assert len(seen) > 1 and done == sorted(done) and seen[-1] == (132, 132)
