@@ -49,3 +49,31 @@ def without_jax_cache(monkeypatch):
     yield
     jax.config.update("jax_compilation_cache_dir", folder)
     compilation_cache.reset_cache()
+
+
+@pytest.fixture
+def executable_cache(monkeypatch, tmp_path, without_jax_cache):
+    """The library's disk cache of executables in a folder of the test's own:
+    `(folder, loads, new_process)`, `loads` one bool per entry looked for on disk
+    (found or not), `new_process()` empties this process's table of programs (as a
+    later process starts)."""
+    import collections
+
+    from lagrax import _executables
+
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(_executables, "_PROGRAMS", collections.OrderedDict())
+    loads = []
+    load = _executables._load
+
+    def spy(key, in_tree, out_tree):
+        out = load(key, in_tree, out_tree)
+        loads.append(out is not None)
+        return out
+
+    monkeypatch.setattr(_executables, "_load", spy)
+
+    def new_process():
+        monkeypatch.setattr(_executables, "_PROGRAMS", collections.OrderedDict())
+
+    return tmp_path, loads, new_process

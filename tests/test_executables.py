@@ -25,23 +25,8 @@ SWEEP.update(rtol=1e-10, atol=1e-10)
 
 
 @pytest.fixture
-def cache(monkeypatch, tmp_path, without_jax_cache):
-    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
-    monkeypatch.setattr(executables, "_PROGRAMS", collections.OrderedDict())
-    loads = []
-    load = executables._load
-
-    def spy(key, in_tree, out_tree):
-        out = load(key, in_tree, out_tree)
-        loads.append(out is not None)
-        return out
-
-    monkeypatch.setattr(executables, "_load", spy)
-
-    def new_process():
-        monkeypatch.setattr(executables, "_PROGRAMS", collections.OrderedDict())
-
-    return tmp_path, loads, new_process
+def cache(executable_cache):
+    return executable_cache
 
 
 def _files(folder):

@@ -32,18 +32,8 @@ _LOWERINGS = []
 
 
 @pytest.fixture
-def cache(monkeypatch, tmp_path, without_jax_cache):
-    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
-    monkeypatch.setattr(executables, "_PROGRAMS", collections.OrderedDict())
-    loads = []
-    load = executables._load
-
-    def spy(key, in_tree, out_tree):
-        out = load(key, in_tree, out_tree)
-        loads.append(out is not None)
-        return out
-
-    monkeypatch.setattr(executables, "_load", spy)
+def cache(executable_cache, monkeypatch):
+    folder, loads, new_process = executable_cache
 
     # Programs lowered by `cached_call` (JAX's in-process caches may spare a lowering
     # its monitoring event).
@@ -55,11 +45,11 @@ def cache(monkeypatch, tmp_path, without_jax_cache):
 
     monkeypatch.setattr(executables, "_program_key", lowered)
 
-    def new_process():
-        monkeypatch.setattr(executables, "_PROGRAMS", collections.OrderedDict())
+    def later_process():
+        new_process()
         _LOWERINGS.clear()
 
-    return tmp_path, loads, new_process
+    return folder, loads, later_process
 
 
 def _names(folder, suffix):
