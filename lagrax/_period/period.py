@@ -35,6 +35,7 @@ Numerical choices (each one a measured trap):
 import diffrax as dfx
 import equinox as eqx
 import jax
+import numpy as np
 from jaxtyping import Array
 
 from .._checks import as_real_array, check_finite, is_concrete
@@ -49,11 +50,11 @@ from .._results import (
     SUCCESS,
 )
 from .._taylor.solver import Taylor
-from .autodiff import periods_diff
 from .methods import Method
 from .options import check_options
 from .reuse import canonical_inputs
 from .solver import stepper_of
+from .sweep import _sweep_call
 
 
 class _Lane(eqx.Module):
@@ -218,5 +219,8 @@ def _one_lane(L_c, consts, q0, stepper, opts, estimate):
     cfg = Method(stepper, opts.method, 1, opts.max_steps, bool(estimate))
     device = (jax.devices()[0],)
     args = (consts, opts.rtol, opts.atol, opts.t_max, opts.energy_tol)
-    out = periods_diff(L_c, cfg, device, q0[None], *args)
+    # As `sweep_periods`: one compiled call, whose forward-mode derivative is a
+    # compiled program too, reused by every later eager `jax.grad`.
+    order = np.zeros((1,), np.int32)
+    out, _ = _sweep_call(L_c, cfg, device, q0[None], order, *args)
     return out.periods[0], out.status[0], out.estimate[0]
