@@ -207,7 +207,12 @@ def test_quarter_refuses_an_asymmetric_well():
     assert np.all(np.asarray(res.status) == NOT_SYMMETRIC)
     assert np.all(np.isnan(np.asarray(res.periods)))
     assert "mirror" in res.messages()[0]
-    # ... and accepts the symmetric pendulum.
+
+
+# A program of its own; "quarter" on the pendulum, every lane a success, runs every
+# time in tests/test_period.py and tests/test_taylor_solver.py.
+@pytest.mark.slow
+def test_quarter_accepts_the_symmetric_pendulum():
     res = lagrax.sweep_periods(PENDULUM, jnp.array([0.5, 2.0, 3.0]), method="quarter")
     assert np.all(np.asarray(res.status) == SUCCESS)
 
@@ -286,7 +291,8 @@ def test_estimate_bounds_the_error_on_random_wells(a, b):
     "solver, tol, bound",
     [
         (dfx.Tsit5(), 1e-10, 1e-9),
-        (dfx.Dopri5(), 1e-10, 1e-9),
+        # (Another FSAL pair like Tsit5: a program of its own, with -m slow.)
+        pytest.param(dfx.Dopri5(), 1e-10, 1e-9, marks=pytest.mark.slow),
         (dfx.Dopri8(), 1e-12, 1e-11),
     ],
 )
