@@ -35,8 +35,9 @@ USER_MODULE = textwrap.dedent(
         return L
 
 
-    def L(q, qdot, t):  # the pendulum with g = r = 1, given directly
-        return 0.5 * qdot[0] ** 2 + jnp.cos(q[0])
+    def L(q, qdot, t):  # the pendulum with g = r = 1, given directly (the factory's
+        # terms: one compiled program for both, their constants are its arguments)
+        return 0.5 * qdot[0] ** 2 + 1.0 * jnp.cos(q[0])
 
 
     def double(q, qdot, t):
