@@ -144,11 +144,9 @@ def test_non_ode_term_rejected():
         dfx.diffeqsolve(term, lagrax.Taylor(order=K), 0.0, 1.0, 0.1, jnp.asarray(1.0))
 
 
-def _check_series_against_jvps(field, q0, v0, order=3):
+def _check_series_against_jvps(field, q0, v0, order=4):
     """The series of y' = F(y) from the system's program against nested JVPs,
-    y_k = y^(k)(0) / k!, up to `order`; returns the program. (At order 3 the solve's
-    recurrence already takes the mass matrix's series to its second coefficient; the
-    reference's nested JVPs compile for ~3x longer at order 4.)"""
+    y_k = y^(k)(0) / k!, up to `order`; returns the program."""
     from lagrax._taylor.system import System
 
     n = q0.shape[0]
