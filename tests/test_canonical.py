@@ -71,8 +71,9 @@ def test_rebuilt_lagrangian_reuses_the_compiled_sweep():
 def test_new_values_change_the_outcome():
     # The values reach the compiled program as arguments, none is kept from the
     # first call: upside down (g = -1) the pendulum swings about pi, and without
-    # gravity it does not swing at all.
-    q0 = jnp.linspace(0.2, 2.9, 8)
+    # gravity it does not swing at all. (The shape and options of the test above:
+    # its compiled program.)
+    q0 = jnp.linspace(0.2, 2.9, 32)
     kw = dict(method="quarter", solver=dfx.Dopri8(), error_estimate=False)
     flipped = lagrax.sweep_periods(pendulum.lagrangian(g=-1.0), q0, **kw)
     exact = pendulum.period(jnp.pi - q0)

@@ -35,8 +35,9 @@ USER_MODULE = textwrap.dedent(
         return L
 
 
-    def L(q, qdot, t):  # the pendulum with g = r = 1, given directly
-        return 0.5 * qdot[0] ** 2 + jnp.cos(q[0])
+    def L(q, qdot, t):  # the pendulum with g = r = 1, given directly (the factory's
+        # terms: one compiled program for both, their constants are its arguments)
+        return 0.5 * qdot[0] ** 2 + 1.0 * jnp.cos(q[0])
 
 
     def double(q, qdot, t):
@@ -334,9 +335,10 @@ def test_builtin_without_exact_period_uses_quadrature_on_request(capsys, tmp_pat
 
 def test_failures_exit_1_and_are_named(capsys, tmp_path, user_module):
     # Released at q0 = 0, the bottom of the well: no oscillation, a failure per lane.
+    # (The shape and options of the user-module sweeps above: their compiled program.)
     rc, out, err = run(
-        capsys, "sweep", "my_systems:L", "--min", "0", "--max", "1", "--count", "5",
-        "--chunk-size", "4", "--quiet",
+        capsys, "sweep", "my_systems:L", "--min", "0", "--max", "1", "--count", "12",
+        "--chunk-size", "4", "--method", "quarter", "--quiet",
     )  # fmt: skip
     assert rc == 1
     assert "1 failed" in out
@@ -400,12 +402,14 @@ def test_interrupted_sweep_leaves_no_file_and_resumes(
 
 
 def test_sweep_with_the_taylor_solver(capsys, tmp_path):
+    # (The shape of the table's sweep above, which the default runs with Taylor too:
+    # its compiled program.)
     out_csv = tmp_path / "taylor.csv"
-    argv = ["sweep", "pendulum", "--count", "24", "--chunk-size", "8", "--quiet"]
+    argv = ["sweep", "pendulum", "--count", "40", "--chunk-size", "16", "--quiet"]
     rc, out, err = run(capsys, *argv, "--solver", "taylor", "--out", out_csv)
     assert rc == 0, err
     data = np.genfromtxt(out_csv, delimiter=",", names=True, dtype=None, encoding=None)
-    assert len(data) == 24 and np.all(data["status"] == 0)
+    assert len(data) == 40 and np.all(data["status"] == 0)
     np.testing.assert_allclose(
         data["period"], exact_pendulum(data["amplitude"]), rtol=1e-12
     )

@@ -37,6 +37,16 @@ FLOOR = 1e-14
 # for every system here).
 SOLVERS = [lagrax.Taylor(), dfx.Dopri8()]
 solvers = pytest.mark.parametrize("solver", SOLVERS, ids=["taylor", "dopri8"])
+# Dopri8's estimate is checked every time on the pendulum's range and near its
+# separatrix ("matched"); elsewhere its variant runs with -m slow (a Dopri8 program
+# each: the compilation is the cost).
+taylor_every_time = pytest.mark.parametrize(
+    "solver",
+    [
+        pytest.param(SOLVERS[0], id="taylor"),
+        pytest.param(SOLVERS[1], id="dopri8", marks=pytest.mark.slow),
+    ],
+)
 # The pendulum's amplitudes wherever the test allows: one shape, so that the tests in
 # this file (one process under `--dist loadfile`) reuse one compiled sweep.
 A = jnp.linspace(0.01, 3.1, 256)
@@ -112,7 +122,7 @@ def test_pendulum_near_the_separatrix(solver):
     assert err.max() <= 1e-12
 
 
-@solvers
+@taylor_every_time
 def test_half_near_the_separatrix_is_caught_by_the_estimate(solver):
     a = jnp.linspace(3.0, jnp.pi - 1e-3, 64)
     res = lagrax.sweep_periods(PENDULUM, a, solver=solver, method="half")
@@ -130,7 +140,7 @@ def test_half_near_the_separatrix_is_caught_by_the_estimate(solver):
     _check_bound(res, pendulum.period(a), spread=1000.0)
 
 
-@solvers
+@taylor_every_time
 def test_cycloid_u_form_is_isochronous_with_bounded_estimates(solver):
     u0 = jnp.linspace(0.05, 0.99, 64)
     res = lagrax.sweep_periods(cycloid.lagrangian_u(), u0, solver=solver)
@@ -166,16 +176,10 @@ def _well_period(x0):
         )
 
 
-@pytest.mark.parametrize(
-    "solver",
-    [
-        pytest.param(SOLVERS[0], id="taylor"),
-        # Dopri8's estimate near a separatrix: every time in the pendulum's tests.
-        pytest.param(SOLVERS[1], id="dopri8", marks=pytest.mark.slow),
-    ],
-)
+# Dopri8's estimate near a separatrix: every time in the pendulum's tests.
+@taylor_every_time
 def test_asymmetric_well_to_099_of_its_hump(solver):
-    q0 = _hump_releases(128)
+    q0 = _hump_releases(64)
     exact = np.array([_well_period(x) for x in np.asarray(q0)])
     res = lagrax.sweep_periods(WELL, q0, solver=solver)
     assert np.all(np.asarray(res.status) == SUCCESS)
@@ -203,26 +207,42 @@ def test_quarter_refuses_an_asymmetric_well():
     assert np.all(np.asarray(res.status) == NOT_SYMMETRIC)
     assert np.all(np.isnan(np.asarray(res.periods)))
     assert "mirror" in res.messages()[0]
-    # ... and accepts the symmetric pendulum.
+
+
+# A program of its own; "quarter" on the pendulum, every lane a success, runs every
+# time in tests/test_period.py and tests/test_taylor_solver.py.
+@pytest.mark.slow
+def test_quarter_accepts_the_symmetric_pendulum():
     res = lagrax.sweep_periods(PENDULUM, jnp.array([0.5, 2.0, 3.0]), method="quarter")
     assert np.all(np.asarray(res.status) == SUCCESS)
 
 
-def test_cusp_in_theta_names_the_coordinate_singularity():
+# The default method every time (its sweep shared with the varying-mass test below);
+# "half" with -m slow (a program of its own).
+@pytest.mark.parametrize(
+    "method", ["matched", pytest.param("half", marks=pytest.mark.slow)]
+)
+def test_cusp_in_theta_names_the_coordinate_singularity(method):
     theta0 = jnp.array([0.0, 1e-12, 1e-10, 1e-8, 1e-6, 1.0])
-    for method in ("matched", "half"):
-        res = lagrax.sweep_periods(cycloid.lagrangian(), theta0, method=method)
-        status = np.asarray(res.status)
-        assert status[0] == SINGULAR_MASS  # released exactly at the cusp
-        assert np.all(status[1:5] == COORDINATE_SINGULARITY), status
-        assert status[5] == SUCCESS
-        assert "reparametrize" in lagrax.status_message(COORDINATE_SINGULARITY)
+    res = lagrax.sweep_periods(cycloid.lagrangian(), theta0, method=method)
+    status = np.asarray(res.status)
+    assert status[0] == SINGULAR_MASS  # released exactly at the cusp
+    assert np.all(status[1:5] == COORDINATE_SINGULARITY), status
+    assert status[5] == SUCCESS
+    assert "reparametrize" in lagrax.status_message(COORDINATE_SINGULARITY)
 
 
 def test_period_returns_its_estimate_on_request():
+    # (That the estimate leaves the period as it is: every time for the same kernel
+    # in test_the_bound_vouches_without_a_second_solve, for `period` with -m slow.)
     T, est = lagrax.period(PENDULUM, 2.0, error_estimate=True)
     true = abs(float(T / pendulum.period(2.0)) - 1)
     assert true <= float(est) <= 100 * max(true, FLOOR)
+
+
+@pytest.mark.slow  # a second one-lane program
+def test_period_with_and_without_its_estimate_agree():
+    T, _ = lagrax.period(PENDULUM, 2.0, error_estimate=True)
     assert float(lagrax.period(PENDULUM, 2.0)) == float(T)
 
 
@@ -271,7 +291,8 @@ def test_estimate_bounds_the_error_on_random_wells(a, b):
     "solver, tol, bound",
     [
         (dfx.Tsit5(), 1e-10, 1e-9),
-        (dfx.Dopri5(), 1e-10, 1e-9),
+        # (Another FSAL pair like Tsit5: a program of its own, with -m slow.)
+        pytest.param(dfx.Dopri5(), 1e-10, 1e-9, marks=pytest.mark.slow),
         (dfx.Dopri8(), 1e-12, 1e-11),
     ],
 )
@@ -381,10 +402,11 @@ def test_a_varying_mass_is_solved_again():
     # The bound assumes a constant mass; the cycloid in θ has M ∝ 1 - cos θ: every
     # lane gets the second solve (more steps than without an estimate), and its
     # estimate bounds the error against the exact, amplitude-independent period.
-    theta = jnp.linspace(0.5, 3.0, 16)
+    # (Six lanes: the shape of the cusp test's sweep with the estimate.)
+    theta = jnp.linspace(0.5, 3.0, 6)
     L = cycloid.lagrangian()
     res = lagrax.sweep_periods(L, theta)
     bare = lagrax.sweep_periods(L, theta, error_estimate=False)
     assert np.all(np.asarray(res.num_steps) > np.asarray(bare.num_steps))
-    exact = np.full(16, float(cycloid.cycloid_period()))
+    exact = np.full(6, float(cycloid.cycloid_period()))
     _check_bound(res, exact)

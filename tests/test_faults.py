@@ -49,7 +49,12 @@ L = _pendulum_with_a_singular_point
 # that Dopri8 reports too when given more steps (measured). Taylor's own failing lanes:
 # tests/test_taylor_solver.py.
 OPTIONS = dict(rtol=1e-10, atol=1e-10, max_steps=64, solver=dfx.Dopri8())
-GOOD = np.array([0.3, 1.0, 2.0, 2.9, 0.7, 1.5, -2.5])
+# 12 good and 4 bad lanes: 16, the size of the pieces a sweep with `progress` runs in
+# at chunk_size=4, so that every sweep below of 16 lanes at chunk_size=4 runs one
+# compiled program.
+GOOD = np.array([0.3, 1.0, 2.0, 2.9, 0.7, 1.5, -2.5, 0.1, -1.2, 2.5, -0.5, 1.8])
+# Good lanes that take the BAD lanes' places in a sweep without failures.
+MORE = np.array([0.4, -2.2, 1.1, 2.7])
 BAD = {
     np.pi - 1e-9: MAX_STEPS,  # the slow approach to the hump takes > 64 steps
     10.0: SINGULAR_MASS,  # released where the mass vanishes
@@ -84,7 +89,9 @@ def mixed_sweep():
 
 def test_failing_lanes_counted_and_the_others_bit_identical(mixed_sweep):
     q0, is_bad, mixed = mixed_sweep
-    clean = lagrax.sweep_periods(L, jnp.asarray(GOOD), chunk_size=4, **OPTIONS)
+    clean = lagrax.sweep_periods(
+        L, jnp.asarray(np.concatenate([GOOD, MORE])), chunk_size=4, **OPTIONS
+    )
     got = _arrays(mixed)
     assert list(got["status"][is_bad]) == list(BAD.values())
     assert int(np.sum(~np.asarray(mixed.ok))) == len(BAD)
@@ -92,8 +99,8 @@ def test_failing_lanes_counted_and_the_others_bit_identical(mixed_sweep):
     messages = [m for m, bad in zip(mixed.messages(), is_bad) if bad]
     assert "max_steps" in messages[0] and "singular" in messages[1]
     # The good lanes: exactly the numbers (and the work) of a sweep without the others.
-    ref = _arrays(clean)
-    assert np.all(ref["status"] == SUCCESS)
+    ref = {k: v[: len(GOOD)] for k, v in _arrays(clean).items()}
+    assert np.all(np.asarray(clean.status) == SUCCESS)
     np.testing.assert_array_equal(got["periods"][~is_bad], ref["periods"])
     np.testing.assert_array_equal(got["num_steps"][~is_bad], ref["num_steps"])
     # And they are right: the same pendulum as lagrax.systems.pendulum.
@@ -111,20 +118,31 @@ def test_results_independent_of_chunk_size_and_order(mixed_sweep):
     )
     for k in ref:
         np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
+    # Another chunk size: see below.
+    _check_other_chunk_size(q0, is_bad, ref, 3)
+
+
+# One lane per chunk: a program of its own (chunk size 3 above, every time).
+@pytest.mark.slow
+def test_results_with_one_lane_per_chunk(mixed_sweep):
+    q0, is_bad, ref = mixed_sweep
+    _check_other_chunk_size(q0, is_bad, _arrays(ref), 1)
+
+
+def _check_other_chunk_size(q0, is_bad, ref, chunk_size):
     # Other chunk sizes: the same statuses, the same periods to well within the
     # tolerance, but not bit for bit. XLA vectorizes a batch of 3 or 1 differently
     # from one of 4 (a few ulps in the vector field), and an adaptive solve can turn
     # that into one step more or less: measured 9 ulps at chunk_size=3 and 2e-12
     # relative (22 steps instead of 24) at chunk_size=1, with rtol=1e-10.
-    for chunk_size in (3, 1):
-        got = _arrays(
-            lagrax.sweep_periods(L, jnp.asarray(q0), chunk_size=chunk_size, **OPTIONS)
-        )
-        np.testing.assert_array_equal(got["status"], ref["status"])
-        np.testing.assert_allclose(
-            got["periods"][~is_bad], ref["periods"][~is_bad], rtol=1e-10, atol=0
-        )
-        assert np.isnan(got["periods"][is_bad]).all()
+    got = _arrays(
+        lagrax.sweep_periods(L, jnp.asarray(q0), chunk_size=chunk_size, **OPTIONS)
+    )
+    np.testing.assert_array_equal(got["status"], ref["status"])
+    np.testing.assert_allclose(
+        got["periods"][~is_bad], ref["periods"][~is_bad], rtol=1e-10, atol=0
+    )
+    assert np.isnan(got["periods"][is_bad]).all()
 
 
 def test_period_failures_raise_with_the_status(mixed_sweep):
@@ -141,7 +159,7 @@ def test_progress_reported_as_the_sweep_goes(mixed_sweep):
     res = lagrax.sweep_periods(
         L, jnp.asarray(q0), chunk_size=4, progress=lambda *a: seen.append(a), **OPTIONS
     )
-    assert seen[-1] == (11, 11)
+    assert seen[-1] == (16, 16)
     np.testing.assert_array_equal(res.status, ref.status)
     # A bigger batch is reported in pieces, counts increasing to the total (pieces
     # of the size the call above ran in: its compiled program again).
@@ -151,8 +169,8 @@ def test_progress_reported_as_the_sweep_goes(mixed_sweep):
         L, many, chunk_size=4, progress=lambda *a: seen.append(a), **OPTIONS
     )
     done = [d for d, _ in seen]
-    assert len(seen) > 1 and done == sorted(done) and seen[-1] == (132, 132)
-    assert all(total == 132 for _, total in seen)
+    assert len(seen) > 1 and done == sorted(done) and seen[-1] == (192, 192)
+    assert all(total == 192 for _, total in seen)
     np.testing.assert_array_equal(res.status, np.tile(ref.status, 12))
     # Sorted over the whole sweep, run in pieces, returned in input order: bit for bit.
     np.testing.assert_array_equal(res.periods, np.tile(ref.periods, 12))
@@ -160,7 +178,8 @@ def test_progress_reported_as_the_sweep_goes(mixed_sweep):
 
 # ----------------------------------------------------------------- command line
 
-ARGV = ["sweep", "pendulum", "--count", "100", "--chunk-size", "8", "--quiet"]
+# Four blocks of 32 amplitudes (four chunks of 8): one compiled shape.
+ARGV = ["sweep", "pendulum", "--count", "128", "--chunk-size", "8", "--quiet"]
 
 
 def _run(capsys, *argv):
