@@ -8,6 +8,7 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import (
     as_time,
@@ -276,7 +277,7 @@ def simulate(
         failed = _failed(sol)
     if throw:
         if eager and is_concrete(failed):
-            if bool(jnp.any(failed)):
+            if np.any(np.asarray(failed)):  # (NumPy: no op-by-op compile)
                 raise RuntimeError(
                     "lagrax.simulate failed: "
                     f"{dfx.RESULTS[sol.result]} (after {int(sol.stats['num_steps'])} "
@@ -528,8 +529,12 @@ class _Start(eqx.Module):
 
 
 def _start(static, arrays):
+    """The accelerations at the start, and whether they are finite from a definite
+    mass matrix (`check_solvable` then has nothing to say)."""
     s = _join(static, arrays)
-    return _accelerations(_Bound(s.L, s.consts), s.q0, s.qdot0, s.t0, s.force)
+    L = _Bound(s.L, s.consts)
+    qddot, (M, ok) = _accelerations(L, s.q0, s.qdot0, s.t0, s.force)
+    return qddot, (M, ok), ok & jnp.all(jnp.isfinite(qddot))
 
 
 @functools.cache
@@ -549,7 +554,9 @@ def _check_start(call, q0, qdot0, t0):
         L = _Bound(call.L, call.consts)
         qddot, (M, ok) = _accelerations_jit(L, q0, qdot0, t0, call.force)
     else:
-        qddot, (M, ok) = cached_call(
+        qddot, (M, ok), fine = cached_call(
             _start_jit(), None, static, arrays, n_static=1, origin=(_start_jit,)
         )
+        if bool(fine):  # (its checks, op by op, compile on a process's first call)
+            return
     check_solvable(qddot, M, ok, q0, qdot0, t0, names=("q0", "qdot0", "t0"))
