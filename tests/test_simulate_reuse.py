@@ -159,3 +159,12 @@ def test_under_jit_and_vmap_it_is_traced_in_place(monkeypatch):
     # g = 4 over [0, 1] is g = 1 over [0, 2].
     slow = lagrax.simulate(pendulum.lagrangian(), jnp.array([0.5]), V0, 0.0, 2.0, **TOL)
     np.testing.assert_allclose(out[1], slow.ys[0][-1, 0], rtol=0, atol=1e-8)
+
+
+def test_a_lagrangian_closing_over_a_tracer_is_differentiated(cache):
+    # (Concrete state and times, and L closes over the tracer of `jax.grad`: run as
+    # diffrax's, never through a cached executable.)
+    q_end = lambda g: _pendulum(g).ys[0][-1, 0]
+    h = 1e-4
+    central = (q_end(2.0 + h) - q_end(2.0 - h)) / (2 * h)
+    np.testing.assert_allclose(jax.grad(q_end)(2.0), central, rtol=1e-6)

@@ -426,6 +426,8 @@ def _canonical_call(
         L_c, consts = canonical_lagrangian(L, y0[0].dtype, y0[0].shape[0])
     except Exception:  # noqa: BLE001 -- `L` traced once more as diffrax's (errors there)
         return None
+    if not is_concrete(consts):  # (`L` closes over a tracer: an enclosing `grad`...)
+        return None
     if controller is None:
         if isinstance(solver, dfx.AbstractAdaptiveSolver):  # (`tolerances` checked)
             controller = _DefaultController(rtol, atol)
