@@ -27,7 +27,7 @@ from .._executables import cached_call
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import ELEMENTAL
 from .._taylor.solver import Taylor
-from .term import _LagrangeVectorField, LagrangianTerm
+from .term import _LagrangeVectorField, BoundLagrangian, LagrangianTerm
 
 
 def elemental(fn):
@@ -332,16 +332,6 @@ def _join(static, arrays):
     )
 
 
-class _Bound(eqx.Module):
-    """The canonical Lagrangian with its constants: `L(q, qdot, t)`."""
-
-    L: CanonicalLagrangian
-    consts: tuple
-
-    def __call__(self, q, qdot, t):
-        return self.L(q, qdot, t, *self.consts)
-
-
 class _DefaultController(eqx.Module):
     """`default_controller`, built inside the compiled program (a `PIDController`
     holds its norm, a function, which has no text for the disk cache's pre-key)."""
@@ -456,7 +446,7 @@ def _solve(static, arrays):
     saveat = c.saveat.build() if isinstance(c.saveat, _SaveAt) else c.saveat
     solve = getattr(dfx.diffeqsolve, "__wrapped__", dfx.diffeqsolve)
     sol = solve(
-        LagrangianTerm(_Bound(c.L, c.consts), force=c.force),
+        LagrangianTerm(BoundLagrangian(c.L, c.consts), force=c.force),
         c.solver,
         c.t0,
         c.t1,
@@ -534,7 +524,7 @@ def _start(static, arrays):
     """The accelerations at the start, and whether they are finite from a definite
     mass matrix (`check_solvable` then has nothing to say)."""
     s = _join(static, arrays)
-    L = _Bound(s.L, s.consts)
+    L = BoundLagrangian(s.L, s.consts)
     qddot, (M, ok) = _accelerations(L, s.q0, s.qdot0, s.t0, s.force)
     return qddot, (M, ok), ok & jnp.all(jnp.isfinite(qddot))
 
@@ -553,7 +543,7 @@ def _check_start(call, q0, qdot0, t0):
     try:
         hash(static)
     except TypeError:
-        L = _Bound(call.L, call.consts)
+        L = BoundLagrangian(call.L, call.consts)
         qddot, (M, ok) = _accelerations_jit(L, q0, qdot0, t0, call.force)
     else:
         qddot, (M, ok), fine = cached_call(
