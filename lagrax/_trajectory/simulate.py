@@ -149,7 +149,14 @@ def simulate(
     Many releases at once: `lagrax.simulate_batch` (lanes refilled as trajectories
     end); under `vmap` on a GPU, past ~10^5 releases map in pieces
     (`jax.lax.map(f, xs, batch_size=100_000)` inside your `jit`): XLA compiles one
-    very wide batch into a slower program (benchmarks/README.md).
+    very wide batch into a slower program (benchmarks/README.md). An eager call is
+    compiled per body of `L`: a rebuilt `L` with new parameter values (a parameter
+    scan) reuses the program, its values reaching it as arguments, and on a CPU a
+    later process loads it from the library's disk cache of executables (without
+    tracing it where the call holds no function of yours besides `L`, such as a
+    `force` or an event's condition; not with `saveat=SaveAt(ts=...)` or a `dt0`,
+    whose checks in diffrax's program call back into Python, which no executable
+    on disk can hold).
 
     **Arguments:**
 
