@@ -28,6 +28,11 @@ enable one are removed from the workers' environment), float64:
   first process also with a rebuilt `L` (another g). Every other measurement runs
   with that cache off (`LAGRAX_CACHE_DIR=""`),
   except the CLI's, which runs with an empty home (its own caches empty).
+- an eager `simulate` (no `jit`) of the pendulum (q0 = 1) and of the double pendulum
+  (q0 = (1, -0.5)), from rest to t = 10 at rtol = atol = 1e-10, with Tsit5, Dopri8
+  and `Taylor()`: the first call, a rebuilt `L` (another g) in the same process,
+  and a later process (a third g) sharing the first one's disk cache of
+  executables (empty at the start).
 - the tape path (`LAGRAX_TAPE_TIER=1`: L as data, one executable per machine kept
   in the library's own cache): a new Lagrangian (g = 1.3) in a fresh process with
   that cache empty (the executable compiled and written once), then in another
@@ -35,10 +40,12 @@ enable one are removed from the workers' environment), float64:
   then 1000 amplitudes from the same cache (the same executable: the tape path runs
   in pieces of one size).
 
-    python benchmarks/first_result.py [--quick] [--core 1]
+    python benchmarks/first_result.py [--quick] [--core 1] [--only eager]
 
-`--quick`: 10^3 and 4096 amplitudes only, the gradient of 64, no CLI run. Writes
-`benchmarks/results/first_result.json` (or `first_result_quick.json`).
+`--quick`: 10^3 and 4096 amplitudes only, the gradient of 64, no CLI run, the eager
+`simulate` rows with Tsit5 only. `--only eager`: the eager `simulate` rows alone.
+Writes `benchmarks/results/first_result.json` (or `first_result_quick.json`,
+`first_result_eager.json`).
 """
 
 import argparse
@@ -252,6 +259,43 @@ def work_simulate(args):
     return row
 
 
+def work_eager(args):
+    """An eager `simulate` (Tsit5, Dopri8 or Taylor; pendulum or double pendulum):
+    the first call and, with `--rebuilt`, the same body with another g."""
+    jax, lagrax, row, stages = _jax_import()
+    import diffrax as dfx
+    import jax.numpy as jnp
+    import numpy as np
+
+    from lagrax import systems
+
+    system = getattr(systems, args.system)
+    solver = dict(tsit5=dfx.Tsit5, dopri8=dfx.Dopri8, taylor=lagrax.Taylor)
+    solver = solver[args.solver]()
+    q0 = jnp.asarray([1.0, -0.5][: 1 if args.system == "pendulum" else 2])
+
+    def run(g):
+        sol = lagrax.simulate(
+            system.lagrangian(g=g),
+            q0,
+            jnp.zeros_like(q0),
+            0.0,
+            10.0,
+            solver=solver,
+            rtol=1e-10,
+            atol=1e-10,
+        )
+        return sol.ys[0][-1]
+
+    g = 1.0 if args.g is None else args.g
+    out, times = _timed(jax, lambda: run(g), "first", stages)
+    row.update(times, q_end=np.asarray(out).tolist())
+    if args.rebuilt:
+        other, times = _timed(jax, lambda: run(g + 1.0), "rebuilt", stages)
+        row.update(times, rebuilt_differs=bool(not np.allclose(other, out)))
+    return row
+
+
 def work_batch(args):
     """`simulate_batch` of `n` double pendulums (Taylor-16, t = 10): the first call,
     a steady one, and with `--rebuilt` the same body with another g."""
@@ -344,6 +388,7 @@ WORKERS = dict(
     grad=work_grad,
     simulate=work_simulate,
     batch=work_batch,
+    eager=work_eager,
     heyoka=work_heyoka,
 )
 
@@ -418,9 +463,15 @@ def main():
     p.add_argument("--g", type=float, default=None, help="sweep: the pendulum's g")
     p.add_argument("--repeat", action="store_true", help="grad: a second call too")
     p.add_argument("--system", default="pendulum")
+    p.add_argument("--solver", default="tsit5", help="eager: tsit5, dopri8, taylor")
+    p.add_argument("--only", choices=("all", "eager"), default="all")
     args = p.parse_args()
     if args.worker:
         print(json.dumps(WORKERS[args.worker](args)))
+        return
+    if args.only == "eager":
+        out = dict(eager=eager_rows(args.core, quick=args.quick))
+        _write_results(args, out, "first_result_eager.json")
         return
     sizes = [1000, 4096] if args.quick else [1000, 4096, 10_000, 100_000, 1_000_000]
     c = args.core
@@ -462,6 +513,7 @@ def main():
         ]
     for name, row in zip(("empty", "filled", "filled, new g"), out["batch_rerun"]):
         print(f"simulate_batch, cache {name}", json.dumps(row))
+    out["eager"] = eager_rows(c, quick=args.quick)
     with tempfile.TemporaryDirectory() as cache:
         env = dict(LAGRAX_TAPE_TIER="1", LAGRAX_CACHE_DIR=cache)
         out["tape_cold"] = spawn(c, "tape", env=env, n=4096)
@@ -486,11 +538,39 @@ def main():
         out["break_even_amplitudes_cpu"],
         "(CPU)",
     )
+    name = "first_result_quick.json" if args.quick else "first_result.json"
+    _write_results(args, out, name)
+
+
+def eager_rows(core, quick=False):
+    """Eager `simulate` per system and solver: a first process (first call, then a
+    rebuilt `L`) and a later one (another g), sharing a disk cache of executables
+    empty at the start."""
+    rows = []
+    solvers = ("tsit5",) if quick else ("tsit5", "dopri8", "taylor")
+    for system in ("pendulum", "double_pendulum"):
+        for solver in solvers:
+            with tempfile.TemporaryDirectory() as cache:
+                env = dict(LAGRAX_CACHE_DIR=cache)
+                kw = dict(env=env, system=system, solver=solver)
+                first = spawn(core, "eager", rebuilt=True, **kw)
+                later = spawn(core, "eager", g=1.5, **kw)
+            rows.append(dict(system=system, solver=solver, first=first, later=later))
+            secs = lambda row, key: "failed" if row is None else f"{row[key]:.3g} s"
+            print(
+                f"eager simulate, {system}, {solver}: first {secs(first, 'first_s')}, "
+                f"rebuilt {secs(first, 'rebuilt_s')}, "
+                f"later process {secs(later, 'first_s')}"
+            )
+    return rows
+
+
+def _write_results(args, out, name):
     meta = dict(
         date=time.strftime("%Y-%m-%d"),
         machine=platform.processor() or platform.machine(),
         python=platform.python_version(),
-        core=c,
+        core=args.core,
         commit=subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"],
             capture_output=True,
@@ -498,7 +578,6 @@ def main():
             cwd=HERE,
         ).stdout.strip(),
     )
-    name = "first_result_quick.json" if args.quick else "first_result.json"
     os.makedirs(RESULTS, exist_ok=True)
     with open(os.path.join(RESULTS, name), "w") as fh:
         json.dump(dict(meta=meta, **out), fh, indent=2)

@@ -278,7 +278,7 @@ class _Found:
         except Exception:  # noqa: BLE001 -- a node type that does not pickle
             pickled = False
         if not pickled:
-            if self.out_tree != out_tree:
+            if self.out_tree is None or self.out_tree != out_tree:
                 return
             out_tree = None  # (the caller's, given at every call)
         _write(_path(self.prekey, ".key"), pickle.dumps((key, out_tree)))

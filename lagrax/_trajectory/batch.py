@@ -291,7 +291,20 @@ def _two_sum(a, b):
 @functools.cache
 def _compiled(cpu, devices):
     """`_run` compiled once per configuration; over several devices, each runs its
-    own loop over its share of the releases (`jax.shard_map`)."""
+    own loop over its share of the releases (`jax.shard_map`); then `_assemble`d
+    (`shape`: its static arguments), in the same program: op by op, its few
+    operations compile on a process's first call, a third of a later process's call
+    of a loaded program."""
+    jitted = jax.jit(
+        lambda cfg, shape, *args: _assemble(*shape, *_looped(devices)(cfg, *args)),
+        static_argnums=(0, 1),
+        compiler_options=ELEMENTAL if cpu else None,
+    )
+    return jitted
+
+
+def _looped(devices):
+    """`_run`, over several devices one loop each on its share (`jax.shard_map`)."""
     if len(devices) == 1:
         fn = _run
     else:
@@ -310,7 +323,7 @@ def _compiled(cpu, devices):
                 check_vma=False,
             )(*args)
 
-    return jax.jit(fn, static_argnums=(0,), compiler_options=ELEMENTAL if cpu else None)
+    return lambda cfg, *args: (*fn(cfg, *args), args[-2])
 
 
 def _saveat_plan(saveat, t0, t1):
@@ -435,7 +448,7 @@ def simulate_batch(
         save_t1=save_t1,
         max_steps=max_steps,
     )
-    ts_arr = jnp.zeros((0,), dtype) if ts is None else ts.astype(dtype)
+    ts_arr = np.zeros((0,), dtype) if ts is None else ts.astype(dtype)
     cpu = jax.default_backend() == "cpu"
     args = (q0, qdot0, t0, t1, rtol, atol)
     if B % D:  # padded with copies of the last release, dropped below
@@ -443,17 +456,17 @@ def simulate_batch(
             jnp.concatenate([a, jnp.repeat(a[-1:], D - B % D, 0)]) for a in args
         )
     jitted = _compiled(cpu, devices[:D])
+    shape = (B, q0.shape[1], ts is not None, save_t1)
     if is_concrete(args, ts_arr, consts):  # (a later process loads it from disk,
         options = ELEMENTAL if cpu else None  # found by its pre-key: no tracing)
         out = cached_call(
-            jitted, options, cfg, *args, ts_arr, consts, n_static=1,
+            jitted, options, cfg, shape, *args, ts_arr, consts, n_static=2,
             origin=(_compiled, cpu, devices[:D]),
         )  # fmt: skip
     else:
-        out = jitted(cfg, *args, ts_arr, consts)
-    ts_out, qs, vs, result, nsteps, zeros = _assemble(
-        B, q0.shape[1], ts is not None, save_t1, *out, ts_arr
-    )
+        out = jitted(cfg, shape, *args, ts_arr, consts)
+    ts_out, qs, vs, result, nsteps, zeros, failed = out
+    result = jax.tree.unflatten(_RESULT_TREE, [result])
     sol = dfx.Solution(
         t0=t0,
         t1=t1,
@@ -472,13 +485,20 @@ def simulate_batch(
         made_jump=None,
         event_mask=None,
     )
+    if throw and is_concrete(failed):  # (counted in the program: no op-by-op here)
+        _raise_if_count(int(failed), B)
+        return sol
     return _raise_if_failed(sol, throw)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
+# (The loop's program returns `result`'s array: an enumeration item's tree does
+# not survive pickling, where the disk cache keeps the output structure.)
+_RESULT_TREE = jax.tree.structure(dfx.RESULTS.successful)
+
+
 def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, ts_arr):
-    """The loop's outputs as a `Solution`'s arrays, in one compiled call (op by op,
-    ~5 ms a call: a tenth of a 64-release batch)."""
+    """The loop's outputs as a `Solution`'s arrays, and the number of releases that
+    failed."""
     ys, tend, code, nsteps = ys[:B], tend[:B], code[:B], nsteps[:B]
     times = []
     if has_ts:
@@ -495,7 +515,7 @@ def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, ts_arr):
     ok = (code == _DONE)[:, None, None]
     qs = jnp.where(ok, ys[..., :n], jnp.nan)
     vs = jnp.where(ok, ys[..., n:], jnp.nan)
-    result = jax.vmap(outcome)(code)
+    (result,) = jax.tree.leaves(jax.vmap(outcome)(code))
     return (
         jnp.concatenate(times, axis=1),
         qs,
@@ -503,6 +523,7 @@ def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, ts_arr):
         result,
         nsteps,
         jnp.zeros_like(nsteps),
+        jnp.sum(code != _DONE),
     )
 
 
@@ -513,6 +534,8 @@ def _positive(x, name, dtype):
 
 
 def _per_release(x, name, B, dtype):
+    if is_concrete(x) and np.ndim(x) == 0:  # (NumPy: no op-by-op compile)
+        return jax.device_put(np.full((B,), np.asarray(x), dtype))
     x = jnp.asarray(x, dtype)
     if x.ndim == 0:
         return jnp.broadcast_to(x, (B,))
@@ -530,11 +553,14 @@ def _raise_if_failed(sol, throw):
         sol.result != dfx.RESULTS.event_occurred
     )
     if is_concrete(failed):
-        count = int(jnp.sum(failed))
-        if count:
-            raise RuntimeError(
-                f"lagrax.simulate_batch: {count} of {failed.shape[0]} releases "
-                "failed (see `Solution.result` with throw=False)."
-            )
+        _raise_if_count(int(jnp.sum(failed)), failed.shape[0])
         return sol
     return sol.result.error_if(sol, failed)
+
+
+def _raise_if_count(count, B):
+    if count:
+        raise RuntimeError(
+            f"lagrax.simulate_batch: {count} of {B} releases failed (see "
+            "`Solution.result` with throw=False)."
+        )

@@ -1,5 +1,6 @@
 """The one place that talks to diffrax: vector fields and `simulate`."""
 
+import dataclasses
 import functools
 from collections.abc import Callable
 
@@ -7,6 +8,7 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import (
     as_time,
@@ -20,10 +22,12 @@ from .._checks import (
     tolerances,
 )
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
-from .._eom.mechanics import _accelerations_jit
+from .._eom.mechanics import _accelerations, _accelerations_jit
+from .._executables import cached_call
+from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import ELEMENTAL
 from .._taylor.solver import Taylor
-from .term import _LagrangeVectorField, LagrangianTerm
+from .term import _LagrangeVectorField, BoundLagrangian, LagrangianTerm
 
 
 def elemental(fn):
@@ -145,7 +149,14 @@ def simulate(
     Many releases at once: `lagrax.simulate_batch` (lanes refilled as trajectories
     end); under `vmap` on a GPU, past ~10^5 releases map in pieces
     (`jax.lax.map(f, xs, batch_size=100_000)` inside your `jit`): XLA compiles one
-    very wide batch into a slower program (benchmarks/README.md).
+    very wide batch into a slower program (benchmarks/README.md). An eager call is
+    compiled per body of `L`: a rebuilt `L` with new parameter values (a parameter
+    scan) reuses the program, its values reaching it as arguments, and on a CPU a
+    later process loads it from the library's disk cache of executables (without
+    tracing it where the call holds no function of yours besides `L`, such as a
+    `force` or an event's condition; not with `saveat=SaveAt(ts=...)` or a `dt0`,
+    whose checks in diffrax's program call back into Python, which no executable
+    on disk can hold).
 
     **Arguments:**
 
@@ -205,15 +216,12 @@ def simulate(
     if stepsize_controller is None:
         if isinstance(solver, dfx.AbstractAdaptiveSolver):
             rtol, atol = tolerances(rtol, atol, dtype)
-            stepsize_controller = default_controller(rtol, atol, t0, t1, dtype)
-        else:
-            if dt0 is None:
-                raise ValueError(
-                    f"`dt0` is required with the fixed-step solver "
-                    f"{type(solver).__name__}: a step size must be given; got "
-                    "dt0=None."
-                )
-            stepsize_controller = dfx.ConstantStepSize()
+        elif dt0 is None:
+            raise ValueError(
+                f"`dt0` is required with the fixed-step solver "
+                f"{type(solver).__name__}: a step size must be given; got "
+                "dt0=None."
+            )
     if dt0 is not None:
         dt0 = as_time(dt0, "dt0", dtype)
         check_finite(dt0, "dt0")
@@ -224,41 +232,59 @@ def simulate(
                 f"`dt0` must have the sign of t1 - t0; got dt0={float(dt0)} with "
                 f"t0={float(t0)}, t1={float(t1)}."
             )
-    if is_concrete(q0, qdot0, t0):  # raises on a singular start
-        qddot, (M, ok) = _accelerations_jit(L, q0, qdot0, t0, force)
-        check_solvable(qddot, M, ok, q0, qdot0, t0, names=("q0", "qdot0", "t0"))
     if saveat is None:
         saveat = dfx.SaveAt(t1=True)
     eager = is_concrete(q0, qdot0, t0, t1, dt0)
-    # Under a trace the enclosing program compiles the solve: its body is traced in
-    # place, where a nested jit would be traced and then batched again under `vmap`.
-    solve = dfx.diffeqsolve
-    if not eager:
-        solve = getattr(solve, "__wrapped__", solve)
-    if eager and isinstance(solver, Taylor) and jax.default_backend() == "cpu":
-        solve = elemental(dfx.diffeqsolve)
-    sol = solve(
-        LagrangianTerm(L, force=force),
-        solver,
-        t0,
-        t1,
-        dt0,
-        (q0, qdot0),
-        saveat=saveat,
-        stepsize_controller=stepsize_controller,
-        max_steps=max_steps,
-        event=event,
-        adjoint=adjoint,
-        progress_meter=progress_meter,
-        throw=False,
-    )
-    sol = _mark_nonfinite(sol)
-    if throw:
-        failed = (sol.result != dfx.RESULTS.successful) & (
-            sol.result != dfx.RESULTS.event_occurred
+    taylor_cpu = isinstance(solver, Taylor) and jax.default_backend() == "cpu"
+    call = None
+    if eager:
+        # Keyed on what L computes (its canonical jaxpr), not on the Python function:
+        # a rebuilt L with the same body and new parameter values runs the program
+        # compiled for the first, its values as arguments.
+        call = _canonical_call(
+            L, force, solver, t0, t1, dt0, (q0, qdot0), saveat,
+            stepsize_controller, rtol, atol, event, adjoint, progress_meter,
+            max_steps,
+        )  # fmt: skip
+    if call is not None:
+        _check_start(call, q0, qdot0, t0)
+        found = _solve_cached(call, taylor_cpu)
+    if call is not None and found is not None:
+        sol, failed = found
+    else:
+        if is_concrete(q0, qdot0, t0):  # raises on a singular start
+            qddot, (M, ok) = _accelerations_jit(L, q0, qdot0, t0, force)
+            check_solvable(qddot, M, ok, q0, qdot0, t0, names=("q0", "qdot0", "t0"))
+        if stepsize_controller is None:
+            stepsize_controller = _default(solver, rtol, atol, t0, t1, dtype)
+        # Under a trace the enclosing program compiles the solve: its body is traced
+        # in place, where a nested jit would be traced and then batched again under
+        # `vmap`.
+        solve = dfx.diffeqsolve
+        if not eager:
+            solve = getattr(solve, "__wrapped__", solve)
+        if eager and taylor_cpu:
+            solve = elemental(dfx.diffeqsolve)
+        sol = solve(
+            LagrangianTerm(L, force=force),
+            solver,
+            t0,
+            t1,
+            dt0,
+            (q0, qdot0),
+            saveat=saveat,
+            stepsize_controller=stepsize_controller,
+            max_steps=max_steps,
+            event=event,
+            adjoint=adjoint,
+            progress_meter=progress_meter,
+            throw=False,
         )
+        sol = _mark_nonfinite(sol)
+        failed = _failed(sol)
+    if throw:
         if eager and is_concrete(failed):
-            if bool(jnp.any(failed)):
+            if np.any(np.asarray(failed)):  # (NumPy: no op-by-op compile)
                 raise RuntimeError(
                     "lagrax.simulate failed: "
                     f"{dfx.RESULTS[sol.result]} (after {int(sol.stats['num_steps'])} "
@@ -270,3 +296,266 @@ def simulate(
         else:
             sol = sol.result.error_if(sol, failed)
     return sol
+
+
+def _default(solver, rtol, atol, t0, t1, dtype):
+    """The step-size controller `simulate` uses where none is given."""
+    if isinstance(solver, dfx.AbstractAdaptiveSolver):
+        return default_controller(rtol, atol, t0, t1, dtype)
+    return dfx.ConstantStepSize()
+
+
+def _failed(sol):
+    """Per lane: whether the solve failed (an event is a success)."""
+    return (sol.result != dfx.RESULTS.successful) & (
+        sol.result != dfx.RESULTS.event_occurred
+    )
+
+
+# ---------------------------------------------- eager calls, keyed by what L computes
+
+
+class _Hole(eqx.Module):
+    """Where an array of a call stood, in the call's static part."""
+
+
+_HOLE = _Hole()
+_is_hole = lambda x: isinstance(x, _Hole)
+
+
+def _split(tree):
+    """`(static, arrays)`: `tree` with its arrays replaced by holes (hashable: the
+    key of its program), and its arrays in order (as `equinox.filter_jit` splits)."""
+    dynamic, static = eqx.partition(tree, eqx.is_array, replace=_HOLE)
+    return static, tuple(jax.tree.leaves(dynamic))
+
+
+def _join(static, arrays):
+    """The tree `_split` split."""
+    leaves, treedef = jax.tree.flatten(static, is_leaf=_is_hole)
+    arrays = iter(arrays)
+    return jax.tree.unflatten(
+        treedef, [next(arrays) if _is_hole(x) else x for x in leaves]
+    )
+
+
+class _DefaultController(eqx.Module):
+    """`default_controller`, built inside the compiled program (a `PIDController`
+    holds its norm, a function, which has no text for the disk cache's pre-key)."""
+
+    rtol: object
+    atol: object
+
+
+class _SaveAt(eqx.Module):
+    """A `diffrax.SaveAt` of states (no `fn`), built inside the compiled program (its
+    default `fn` is a function, which has no text for the disk cache's pre-key)."""
+
+    t0: bool
+    t1: bool
+    ts: object
+    steps: object
+    dense: bool
+    solver_state: bool
+    controller_state: bool
+    made_jump: bool
+
+    def build(self):
+        return dfx.SaveAt(
+            t0=self.t0, t1=self.t1, ts=self.ts, steps=self.steps, dense=self.dense,
+            solver_state=self.solver_state, controller_state=self.controller_state,
+            made_jump=self.made_jump,
+        )  # fmt: skip
+
+
+_SAVE_Y = dfx.SaveAt(t1=True).subs.fn  # (diffrax's default: save the state)
+
+
+def _saveat_spec(saveat):
+    """`saveat` as a `_SaveAt` where it is one, else `saveat` itself."""
+    sub = saveat.subs
+    if sub is None:
+        parts = dict(t0=False, t1=False, ts=None, steps=False)
+    elif type(sub) is dfx.SubSaveAt and sub.fn is _SAVE_Y:
+        parts = dict(t0=sub.t0, t1=sub.t1, ts=sub.ts, steps=sub.steps)
+    else:
+        return saveat
+    spec = _SaveAt(
+        **parts, dense=saveat.dense, solver_state=saveat.solver_state,
+        controller_state=saveat.controller_state, made_jump=saveat.made_jump,
+    )  # fmt: skip
+    try:  # (the same `SaveAt`, whatever fields a later diffrax adds)
+        same = type(saveat) is dfx.SaveAt and (
+            jax.tree.structure(spec.build()) == jax.tree.structure(saveat)
+        )
+    except Exception:  # noqa: BLE001 -- not one `_SaveAt` rebuilds
+        same = False
+    return spec if same else saveat
+
+
+class _Call(eqx.Module):
+    """An eager `simulate` call: split by `_split` into its program's key and its
+    arrays (the Lagrangian's constants, the state, times, tolerances...)."""
+
+    L: CanonicalLagrangian
+    consts: tuple
+    force: object
+    solver: object
+    t0: object
+    t1: object
+    dt0: object
+    y0: object
+    saveat: object
+    controller: object
+    event: object
+    adjoint: object
+    progress_meter: object
+    max_steps: int
+
+
+def _canonical_call(
+    L, force, solver, t0, t1, dt0, y0, saveat, controller, rtol, atol, event,
+    adjoint, progress_meter, max_steps,
+):  # fmt: skip
+    """The call as a `_Call`, or None where `L` has no canonical form (then the
+    call runs as diffrax's, keyed on `L` itself)."""
+    try:
+        L_c, consts = canonical_lagrangian(L, y0[0].dtype, y0[0].shape[0])
+    except Exception:  # noqa: BLE001 -- `L` traced once more as diffrax's (errors there)
+        return None
+    if not is_concrete(consts):  # (`L` closes over a tracer: an enclosing `grad`...)
+        return None
+    if controller is None:
+        if isinstance(solver, dfx.AbstractAdaptiveSolver):  # (`tolerances` checked)
+            controller = _DefaultController(rtol, atol)
+        else:
+            controller = dfx.ConstantStepSize()
+    return _Call(
+        L=L_c, consts=tuple(consts), force=force, solver=solver, t0=t0, t1=t1,
+        dt0=dt0, y0=y0, saveat=_saveat_spec(saveat), controller=controller,
+        event=event, adjoint=adjoint, progress_meter=progress_meter,
+        max_steps=max_steps,
+    )  # fmt: skip
+
+
+class _Unkeyed(Exception):
+    """A solve whose outputs the cached program cannot return (run as diffrax's)."""
+
+
+def _solve(static, arrays):
+    """The eager solve of `simulate` (`_Call` split by `_split`): the solution's
+    fields as plain containers of arrays, and whether it failed."""
+    c = _join(static, arrays)
+    controller = c.controller
+    if isinstance(controller, _DefaultController):
+        t0, t1, dtype = c.t0, c.t1, c.y0[0].dtype
+        controller = default_controller(controller.rtol, controller.atol, t0, t1, dtype)
+    saveat = c.saveat.build() if isinstance(c.saveat, _SaveAt) else c.saveat
+    solve = getattr(dfx.diffeqsolve, "__wrapped__", dfx.diffeqsolve)
+    sol = solve(
+        LagrangianTerm(BoundLagrangian(c.L, c.consts), force=c.force),
+        c.solver,
+        c.t0,
+        c.t1,
+        c.dt0,
+        c.y0,
+        saveat=saveat,
+        stepsize_controller=controller,
+        max_steps=c.max_steps,
+        event=c.event,
+        adjoint=c.adjoint,
+        progress_meter=c.progress_meter,
+        throw=False,
+    )
+    sol = _mark_nonfinite(sol)
+    # Plain containers (a `Solution`'s tree does not survive pickling: the disk
+    # cache finds an output tree it can write only for these).
+    fields = {f.name: getattr(sol, f.name) for f in dataclasses.fields(sol)}
+    fields["result"] = jax.tree.leaves(sol.result)
+    stats = dict(sol.stats)
+    if type(stats.get("max_steps")) is int and stats["max_steps"] == c.max_steps:
+        stats["max_steps"] = None  # (given back as the Python int)
+    fields["stats"] = stats
+    if not all(eqx.is_array(x) for x in jax.tree.leaves(fields)):
+        raise _Unkeyed
+    return fields, _failed(sol)
+
+
+_RESULT_TREE = jax.tree.structure(dfx.RESULTS.successful)
+
+
+@functools.cache
+def _solve_jit(elemental: bool):
+    """`_solve` compiled (with `ELEMENTAL` for a Taylor solve on a CPU)."""
+    return jax.jit(
+        _solve, static_argnums=0, compiler_options=ELEMENTAL if elemental else None
+    )
+
+
+def _solve_cached(call, elemental):
+    """`(Solution, failed)` of an eager call through the library's cache of compiled
+    programs (in this process, and on disk for later ones), or None where it cannot
+    be keyed (then it runs as diffrax's)."""
+    static, arrays = _split(call)
+    try:
+        hash(static)
+    except TypeError:  # (an unhashable part: keyed on nothing)
+        return None
+    jitted = _solve_jit(elemental)
+    options = ELEMENTAL if elemental else None
+    try:
+        fields, failed = cached_call(
+            jitted, options, static, arrays, n_static=1, origin=(_solve_jit, elemental)
+        )
+    except _Unkeyed:
+        return None
+    fields = dict(fields)
+    fields["result"] = jax.tree.unflatten(_RESULT_TREE, fields["result"])
+    stats = dict(fields["stats"])
+    if "max_steps" in stats and stats["max_steps"] is None:
+        stats["max_steps"] = call.max_steps
+    fields["stats"] = stats
+    return dfx.Solution(**fields), failed
+
+
+class _Start(eqx.Module):
+    L: CanonicalLagrangian
+    consts: tuple
+    force: object
+    q0: object
+    qdot0: object
+    t0: object
+
+
+def _start(static, arrays):
+    """The accelerations at the start, and whether they are finite from a definite
+    mass matrix (`check_solvable` then has nothing to say)."""
+    s = _join(static, arrays)
+    L = BoundLagrangian(s.L, s.consts)
+    qddot, (M, ok) = _accelerations(L, s.q0, s.qdot0, s.t0, s.force)
+    return qddot, (M, ok), ok & jnp.all(jnp.isfinite(qddot))
+
+
+@functools.cache
+def _start_jit():
+    """`_start` compiled: the accelerations at the start of an eager call."""
+    return jax.jit(_start, static_argnums=0)
+
+
+def _check_start(call, q0, qdot0, t0):
+    """Raises on a singular start (`check_solvable`), from the canonical
+    Lagrangian's program (a rebuilt `L` reuses it)."""
+    start = _Start(call.L, call.consts, call.force, q0, qdot0, t0)
+    static, arrays = _split(start)
+    try:
+        hash(static)
+    except TypeError:
+        L = BoundLagrangian(call.L, call.consts)
+        qddot, (M, ok) = _accelerations_jit(L, q0, qdot0, t0, call.force)
+    else:
+        qddot, (M, ok), fine = cached_call(
+            _start_jit(), None, static, arrays, n_static=1, origin=(_start_jit,)
+        )
+        if bool(fine):  # (its checks, op by op, compile on a process's first call)
+            return
+    check_solvable(qddot, M, ok, q0, qdot0, t0, names=("q0", "qdot0", "t0"))

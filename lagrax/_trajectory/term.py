@@ -1,11 +1,17 @@
 """The term of Lagrange's equations: what every diffrax solver integrates."""
 
+import weakref
+
 import diffrax as dfx
 import equinox as eqx
+import jax
+from jax.extend import core as jax_core
 
-from .._checks import check_callable
+from .._checks import check_callable, is_concrete
 from .._custom_types import GeneralizedForce, Lagrangian
 from .._eom.mechanics import _accelerations
+from .._jaxpr.canonical import CanonicalLagrangian
+from .._jaxpr.fusion import fusion_is_off
 
 
 class _LagrangeVectorField(eqx.Module):
@@ -17,8 +23,54 @@ class _LagrangeVectorField(eqx.Module):
 
     def __call__(self, t, y, args):
         q, qdot = y
+        if isinstance(self.L, BoundLagrangian):
+            return qdot, _bound_accelerations(self.L, q, qdot, t, self.force)
         qddot, _ = _accelerations(self.L, q, qdot, t, self.force)
         return qdot, qddot
+
+
+class BoundLagrangian(eqx.Module):
+    """A canonical Lagrangian with its constants: `L(q, qdot, t)`."""
+
+    L: CanonicalLagrangian
+    consts: tuple
+
+    def __call__(self, q, qdot, t):
+        return self.L(q, qdot, t, *self.consts)
+
+
+# Jaxprs of the accelerations per canonical Lagrangian (dropped with it), then per
+# (force, fusion off, avals), the constants among their inputs.
+_DERIVED = weakref.WeakKeyDictionary()
+
+
+def _bound_accelerations(bound, q, qdot, t, force):
+    """The accelerations of `bound`; under a trace, derived once per canonical
+    Lagrangian and replayed (a solver traces its vector field several times, and
+    deriving costs more than the rest of that tracing). The constants are inputs of
+    the kept jaxpr: closed over, they would be tracers of the enclosing program,
+    which no jaxpr kept past it may hold (`_accelerations` derives again at every
+    trace for such a Lagrangian)."""
+    args = (q, qdot, t, *bound.consts)
+    if is_concrete(args):
+        return _accelerations(bound, q, qdot, t, force)[0]
+
+    def derive(q, qdot, t, *consts):
+        return _accelerations(BoundLagrangian(bound.L, consts), q, qdot, t, force)[0]
+
+    try:
+        table = _DERIVED.setdefault(bound.L, {})
+        key = (force, fusion_is_off(), tuple(jax.typeof(x) for x in args))
+        closed = table.get(key)
+    except TypeError:  # (an unhashable force)
+        return derive(*args)
+    if closed is None:
+        closed = jax.make_jaxpr(derive)(*args)
+        if any(isinstance(c, jax.core.Tracer) for c in closed.consts):
+            return derive(*args)  # (`force` closes over a tracer: not kept)
+        table[key] = closed
+    (qddot,) = jax_core.jaxpr_as_fun(closed)(*args)
+    return qddot
 
 
 class LagrangianTerm(dfx.ODETerm):
