@@ -265,22 +265,10 @@ def simulate(
             solve = getattr(solve, "__wrapped__", solve)
         if eager and taylor_cpu:
             solve = elemental(dfx.diffeqsolve)
-        sol = solve(
-            LagrangianTerm(L, force=force),
-            solver,
-            t0,
-            t1,
-            dt0,
-            (q0, qdot0),
-            saveat=saveat,
-            stepsize_controller=stepsize_controller,
-            max_steps=max_steps,
-            event=event,
-            adjoint=adjoint,
-            progress_meter=progress_meter,
-            throw=False,
-        )
-        sol = _mark_nonfinite(sol)
+        sol = _diffeqsolve(
+            solve, L, force, solver, t0, t1, dt0, (q0, qdot0), saveat,
+            stepsize_controller, max_steps, event, adjoint, progress_meter,
+        )  # fmt: skip
         failed = _failed(sol)
     if throw:
         if eager and is_concrete(failed):
@@ -303,6 +291,20 @@ def _default(solver, rtol, atol, t0, t1, dtype):
     if isinstance(solver, dfx.AbstractAdaptiveSolver):
         return default_controller(rtol, atol, t0, t1, dtype)
     return dfx.ConstantStepSize()
+
+
+def _diffeqsolve(
+    solve, L, force, solver, t0, t1, dt0, y0, saveat, controller, max_steps, event,
+    adjoint, progress_meter,
+):  # fmt: skip
+    """`solve` (`diffrax.diffeqsolve`, or a compiled form of it) of Lagrange's
+    equations, without throwing; non-finite states marked as a failure."""
+    sol = solve(
+        LagrangianTerm(L, force=force), solver, t0, t1, dt0, y0, saveat=saveat,
+        stepsize_controller=controller, max_steps=max_steps, event=event,
+        adjoint=adjoint, progress_meter=progress_meter, throw=False,
+    )  # fmt: skip
+    return _mark_nonfinite(sol)
 
 
 def _failed(sol):
@@ -452,22 +454,10 @@ def _solve(static, arrays):
         controller = default_controller(controller.rtol, controller.atol, t0, t1, dtype)
     saveat = c.saveat.build() if isinstance(c.saveat, _SaveAt) else c.saveat
     solve = getattr(dfx.diffeqsolve, "__wrapped__", dfx.diffeqsolve)
-    sol = solve(
-        LagrangianTerm(BoundLagrangian(c.L, c.consts), force=c.force),
-        c.solver,
-        c.t0,
-        c.t1,
-        c.dt0,
-        c.y0,
-        saveat=saveat,
-        stepsize_controller=controller,
-        max_steps=c.max_steps,
-        event=c.event,
-        adjoint=c.adjoint,
-        progress_meter=c.progress_meter,
-        throw=False,
-    )
-    sol = _mark_nonfinite(sol)
+    sol = _diffeqsolve(
+        solve, BoundLagrangian(c.L, c.consts), c.force, c.solver, c.t0, c.t1, c.dt0,
+        c.y0, saveat, controller, c.max_steps, c.event, c.adjoint, c.progress_meter,
+    )  # fmt: skip
     # Plain containers (a `Solution`'s tree does not survive pickling: the disk
     # cache finds an output tree it can write only for these).
     fields = {f.name: getattr(sol, f.name) for f in dataclasses.fields(sol)}
