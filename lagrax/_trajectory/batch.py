@@ -304,7 +304,8 @@ def _compiled(cpu, devices):
 
 
 def _looped(devices):
-    """`_run`, over several devices one loop each on its share (`jax.shard_map`)."""
+    """`_run`, over several devices one loop each on its share (`jax.shard_map`);
+    its outputs followed by the save times (`ts_arr`, `_assemble`'s last argument)."""
     if len(devices) == 1:
         fn = _run
     else:
@@ -323,6 +324,7 @@ def _looped(devices):
                 check_vma=False,
             )(*args)
 
+    # (args: q0, qdot0, t0, t1, rtol, atol, ts_arr, consts)
     return lambda cfg, *args: (*fn(cfg, *args), args[-2])
 
 
