@@ -198,9 +198,7 @@ def simulate(
     scan) reuses the program, its values reaching it as arguments, and on a CPU a
     later process loads it from the library's disk cache of executables (without
     tracing it where the call holds no function of yours besides `L`, such as a
-    `force` or an event's condition; not with `saveat=SaveAt(ts=...)` or a `dt0`,
-    whose checks in diffrax's program call back into Python, which no executable
-    on disk can hold).
+    `force` or an event's condition).
 
     **Arguments:**
 
@@ -230,8 +228,9 @@ def simulate(
     **Raises:**
 
     - `TypeError`/`ValueError`: bad `L`, `q0`, `qdot0`, times or tolerances (the message
-        names the argument); in an eager call also a singular mass matrix or non-finite
-        accelerations at the initial state.
+        names the argument); in an eager call also save times `saveat.ts` that do not
+        run from `t0` to `t1`, a `dt0` of the wrong sign, a singular mass matrix or
+        non-finite accelerations at the initial state.
     - `RuntimeError` (eager) or an equinox runtime error (under `jit`): the solve failed
         and `throw=True`.
 
