@@ -529,10 +529,11 @@ def _host_checked(closed):
     """`closed` (a `ClosedJaxpr`) without the callbacks of its `equinox.error_if`
     branches whose every message is in `_HOST_CHECKED`: each such `cond` takes its
     branch without error whatever its predicate. Every other callback is kept."""
-    return closed.replace(jaxpr=_drop_checked(closed.jaxpr))
+    return _map_jaxprs(closed)
 
 
 def _drop_checked(jaxpr):
+    """`_host_checked` of an open jaxpr (`jaxpr` itself where nothing changes)."""
     eqns = []
     for eqn in jaxpr.eqns:
         params = eqn.params
@@ -541,20 +542,26 @@ def _drop_checked(jaxpr):
             params = {**params, "branches": (ok, ok)}
         else:
             params = {k: _map_jaxprs(v) for k, v in params.items()}
-        eqns.append(eqn.replace(params=params))
+        changed = any(params[k] is not v for k, v in eqn.params.items())
+        eqns.append(eqn.replace(params=params) if changed else eqn)
+    if all(a is b for a, b in zip(eqns, jaxpr.eqns)):
+        return jaxpr
     return jaxpr.replace(eqns=eqns)
 
 
 def _map_jaxprs(value):
-    """A parameter of an equation with the jaxprs in it passed to `_drop_checked`."""
+    """A parameter of an equation with the jaxprs in it passed to `_drop_checked`
+    (`value` itself where nothing changes)."""
     if isinstance(value, jex_core.ClosedJaxpr):
-        return value.replace(jaxpr=_drop_checked(value.jaxpr))
+        jaxpr = _drop_checked(value.jaxpr)
+        return value if jaxpr is value.jaxpr else value.replace(jaxpr=jaxpr)
     if isinstance(value, jex_core.Jaxpr):
         return _drop_checked(value)
     if isinstance(value, tuple) and any(
         isinstance(v, jex_core.ClosedJaxpr | jex_core.Jaxpr) for v in value
     ):
-        return tuple(_map_jaxprs(v) for v in value)
+        mapped = tuple(_map_jaxprs(v) for v in value)
+        return value if all(a is b for a, b in zip(mapped, value)) else mapped
     return value
 
 
