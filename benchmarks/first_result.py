@@ -30,9 +30,10 @@ enable one are removed from the workers' environment), float64:
   except the CLI's, which runs with an empty home (its own caches empty).
 - an eager `simulate` (no `jit`) of the pendulum (q0 = 1) and of the double pendulum
   (q0 = (1, -0.5)), from rest to t = 10 at rtol = atol = 1e-10, with Tsit5, Dopri8
-  and `Taylor()`: the first call, a rebuilt `L` (another g) in the same process,
-  and a later process (a third g) sharing the first one's disk cache of
-  executables (empty at the start).
+  and `Taylor()`, saved at t = 10 (and with Tsit5 also at 101 times,
+  `SaveAt(ts=jnp.linspace(0, 10, 101))`): the first call, a rebuilt `L` (another
+  g) in the same process, and a later process (a third g) sharing the first one's
+  disk cache of executables (empty at the start).
 - the tape path (`LAGRAX_TAPE_TIER=1`: L as data, one executable per machine kept
   in the library's own cache): a new Lagrangian (g = 1.3) in a fresh process with
   that cache empty (the executable compiled and written once), then in another
@@ -274,6 +275,8 @@ def work_eager(args):
     solver = solver[args.solver]()
     q0 = jnp.asarray([1.0, -0.5][: 1 if args.system == "pendulum" else 2])
 
+    saveat = dfx.SaveAt(ts=jnp.linspace(0.0, 10.0, args.ts)) if args.ts else None
+
     def run(g):
         sol = lagrax.simulate(
             system.lagrangian(g=g),
@@ -282,6 +285,7 @@ def work_eager(args):
             0.0,
             10.0,
             solver=solver,
+            saveat=saveat,
             rtol=1e-10,
             atol=1e-10,
         )
@@ -464,6 +468,7 @@ def main():
     p.add_argument("--repeat", action="store_true", help="grad: a second call too")
     p.add_argument("--system", default="pendulum")
     p.add_argument("--solver", default="tsit5", help="eager: tsit5, dopri8, taylor")
+    p.add_argument("--ts", type=int, default=0, help="eager: save at n times")
     p.add_argument("--only", choices=("all", "eager"), default="all")
     args = p.parse_args()
     if args.worker:
@@ -548,18 +553,23 @@ def eager_rows(core, quick=False):
     empty at the start."""
     rows = []
     solvers = ("tsit5",) if quick else ("tsit5", "dopri8", "taylor")
+    # (Saved at t1 only, each solver; and at 101 times, `SaveAt(ts=...)`, Tsit5.)
+    cases = [(solver, 0) for solver in solvers] + [("tsit5", 101)]
     for system in ("pendulum", "double_pendulum"):
-        for solver in solvers:
+        for solver, ts in cases:
             with tempfile.TemporaryDirectory() as cache:
                 env = dict(LAGRAX_CACHE_DIR=cache)
-                kw = dict(env=env, system=system, solver=solver)
+                kw = dict(env=env, system=system, solver=solver, ts=ts)
                 first = spawn(core, "eager", rebuilt=True, **kw)
                 later = spawn(core, "eager", g=1.5, **kw)
-            rows.append(dict(system=system, solver=solver, first=first, later=later))
+            rows.append(
+                dict(system=system, solver=solver, ts=ts, first=first, later=later)
+            )
             secs = lambda row, key: "failed" if row is None else f"{row[key]:.3g} s"
+            saved = f", SaveAt(ts) of {ts}" if ts else ""
             print(
-                f"eager simulate, {system}, {solver}: first {secs(first, 'first_s')}, "
-                f"rebuilt {secs(first, 'rebuilt_s')}, "
+                f"eager simulate, {system}, {solver}{saved}: first "
+                f"{secs(first, 'first_s')}, rebuilt {secs(first, 'rebuilt_s')}, "
                 f"later process {secs(later, 'first_s')}"
             )
     return rows

@@ -47,6 +47,12 @@ def check_callable(f, name: str, expected: str):
 
 def as_real_array(x, name: str):
     """Converts `x` to a JAX array with a real floating dtype, or raises."""
+    check_real(x, name)
+    return jnp.asarray(x)
+
+
+def check_real(x, name: str):
+    """Raises unless `x` is an array (or number) of a real floating dtype."""
     if isinstance(x, str | bytes) or x is None:
         raise TypeError(
             f"`{name}` must be an array of real floating-point numbers; got "
@@ -70,7 +76,6 @@ def as_real_array(x, name: str):
             f"`{name}` must have a real floating dtype (float32 or float64); got "
             f"{what}. Write e.g. `jnp.array([1.0])` rather than `jnp.array([1])`."
         )
-    return jnp.asarray(x)
 
 
 def as_real_promoting_ints(x, name: str):
@@ -124,10 +129,25 @@ def as_state(q, qdot, qname: str = "q", qdotname: str = "qdot"):
 
 
 def as_time(t, name: str, dtype):
-    t = as_real_array(t, name) if not isinstance(t, int | float) else jnp.asarray(t)
-    if jnp.ndim(t) != 0:
-        raise ValueError(f"`{name}` must be a scalar time; got shape {jnp.shape(t)}.")
-    return jnp.asarray(t, dtype=dtype)
+    """A scalar time (a Python number, or a real float array) as an array of
+    `dtype`: converted by NumPy where it is concrete (`_as_dtype`)."""
+    if not isinstance(t, int | float):
+        check_real(t, name)
+    if np.ndim(t) != 0:
+        raise ValueError(f"`{name}` must be a scalar time; got shape {np.shape(t)}.")
+    return _as_dtype(t, dtype)
+
+
+def _as_dtype(x, dtype):
+    """`x` as an array of `dtype`: a tracer by JAX; a concrete value by NumPy, unless
+    it is a JAX array of `dtype` already (a `jnp` conversion of a concrete value
+    compiles an XLA computation on a process's first call; a NumPy scalar is also no
+    device transfer before every dispatch)."""
+    if isinstance(x, jax.core.Tracer):
+        return jnp.asarray(x, dtype=dtype)
+    if isinstance(x, jax.Array) and x.dtype == dtype and not x.weak_type:
+        return x
+    return np.asarray(x, dtype)
 
 
 def check_finite(x, name: str):
@@ -145,22 +165,15 @@ def positive_scalar(x, name: str, dtype, *, optional: bool = False):
     `None` passes through when `optional`. Values are checked when concrete."""
     if x is None and optional:
         return None
-    if isinstance(x, int | float) and not isinstance(x, bool):
-        # A Python number: checked and converted by NumPy (a `jnp` conversion of a
-        # weakly typed scalar compiles an XLA computation on a first call).
-        if not (math.isfinite(x) and x > 0):
-            raise ValueError(f"`{name}` must be a positive finite number; got {x}.")
-        # (A NumPy scalar: a `jnp` array here would be a device transfer before
-        # every dispatch.)
-        return np.asarray(x, dtype)
-    x = as_real_array(x, name)
-    if jnp.ndim(x) != 0:
-        raise ValueError(f"`{name}` must be a scalar; got shape {jnp.shape(x)}.")
+    if not (isinstance(x, int | float) and not isinstance(x, bool)):
+        check_real(x, name)
+        if np.ndim(x) != 0:
+            raise ValueError(f"`{name}` must be a scalar; got shape {np.shape(x)}.")
     if is_concrete(x):
-        value = float(x)
+        value = x if isinstance(x, int | float) else float(x)
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"`{name}` must be a positive finite number; got {value}.")
-    return jnp.asarray(x, dtype)
+    return _as_dtype(x, dtype)
 
 
 def positive_int(x, name: str, *, minimum: int = 1) -> int:

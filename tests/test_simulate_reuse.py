@@ -84,12 +84,12 @@ def test_another_body_compiles_its_own_program(compiles):
     np.testing.assert_allclose(sol.ys[0][:, 0], np.cos(TS), rtol=0, atol=1e-8)
 
 
-def _damped(zeta, ts=TS):
+def _damped(zeta):
     """The damped oscillator q'' = -q - 2 zeta q' from rest at q = 1, by a force,
-    saved at `ts` (None: at t = 1 only)."""
+    saved at `TS`."""
     spring = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - 0.5 * q[0] ** 2
     force = lambda q, qdot, t: -2.0 * zeta * qdot
-    saveat = dfx.SaveAt(t1=True) if ts is None else dfx.SaveAt(ts=ts)
+    saveat = dfx.SaveAt(ts=TS)
     sol = lagrax.simulate(spring, Q0, V0, 0.0, 1.0, force=force, saveat=saveat, **TOL)
     t = np.asarray(sol.ts)
     w = np.sqrt(1 - zeta**2)
@@ -136,16 +136,76 @@ def test_a_later_process_loads_the_program_of_a_rebuilt_lagrangian(cache):
 
 def test_a_later_process_with_a_force_finds_the_program_by_lowering(cache):
     folder, loads, new_process, lowerings = cache
-    # (Saved at t1: saved at `ts`, diffrax checks them in the program with a host
-    # callback, and such a program is kept in memory only.)
-    q, exact = _damped(0.2, ts=None)
+    q, exact = _damped(0.2)
     new_process()
     lowerings.clear()
-    q_again, _ = _damped(0.2, ts=None)
+    q_again, _ = _damped(0.2)
     # (A function has no text for a pre-key: found by its lowered program.)
     assert loads[-2:] == [True, True] and len(lowerings) == 2
     np.testing.assert_array_equal(q_again, q)
     np.testing.assert_allclose(q, exact, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    "how", [dict(saveat=dfx.SaveAt(ts=TS * 2.0)), dict(dt0=0.01)], ids=["ts", "dt0"]
+)
+def test_a_later_process_loads_a_program_with_save_times_or_dt0(cache, how):
+    # (diffrax checks save times and dt0 by a callback in its program; simulate
+    # checks them on the host instead, so the program can be written to disk.)
+    folder, loads, new_process, lowerings = cache
+    first = lagrax.simulate(pendulum.lagrangian(g=1.0), Q0, V0, 0.0, 2.0, **TOL, **how)
+    assert loads == [False, False] and len(list(folder.glob("p*.bin"))) == 2
+    new_process()
+    lowerings.clear()
+    again = lagrax.simulate(pendulum.lagrangian(g=1.0), Q0, V0, 0.0, 2.0, **TOL, **how)
+    assert loads[2:] == [True, True] and lowerings == []
+    np.testing.assert_array_equal(again.ys[0], first.ys[0])
+    np.testing.assert_array_equal(again.ts, first.ts)
+    if "saveat" in how:
+        np.testing.assert_array_equal(again.ts, TS * 2.0)
+
+
+def test_a_failed_solve_loaded_from_disk_still_raises(cache):
+    folder, loads, new_process, lowerings = cache
+    many = dict(saveat=dfx.SaveAt(ts=TS * 10.0), max_steps=4, **TOL)
+    sol = lagrax.simulate(pendulum.lagrangian(), Q0, V0, 0.0, 10.0, throw=False, **many)
+    assert sol.result == dfx.RESULTS.max_steps_reached
+    new_process()
+    with pytest.raises(RuntimeError, match="maximum number of solver steps"):
+        lagrax.simulate(pendulum.lagrangian(), Q0, V0, 0.0, 10.0, **many)
+    assert loads[-2:] == [True, True]
+
+
+@pytest.mark.parametrize(
+    "t1, ts, match",
+    [
+        (1.0, [0.0, 0.5, 0.25], r"`saveat.ts` must run from t0 to t1 \(increasing"),
+        (-1.0, [0.0, 0.5], r"`saveat.ts` must run from t0 to t1 \(decreasing"),
+        (1.0, [0.0, 0.5, 1.5], r"`saveat.ts` must lie between t0=0.0 and t1=1.0"),
+        (1.0, [0.0, np.nan], r"`saveat.ts` must be finite"),
+        (1.0, [[0.0, 0.5]], r"`saveat.ts` must be a 1-D array"),
+    ],
+    ids=["unsorted", "backwards", "outside", "nan", "2-d"],
+)
+def test_bad_save_times_are_named(t1, ts, match):
+    saveat = dfx.SaveAt(ts=jnp.asarray(ts))
+    with pytest.raises(ValueError, match=match):
+        lagrax.simulate(pendulum.lagrangian(), Q0, V0, 0.0, t1, saveat=saveat)
+
+
+def test_save_times_backwards_in_time_are_accepted():
+    # (From t0 = 0 back to t1 = -1, as diffrax asks: decreasing, within [t1, t0].)
+    ts = -TS
+    sol = lagrax.simulate(
+        pendulum.lagrangian(), Q0, V0, 0.0, -1.0, saveat=dfx.SaveAt(ts=ts), **TOL
+    )
+    ahead = _pendulum(1.0)  # (from rest: q(-t) = q(t))
+    np.testing.assert_allclose(sol.ys[0], ahead.ys[0], rtol=0, atol=1e-8)
+
+
+def test_a_dt0_of_the_wrong_sign_is_named():
+    with pytest.raises(ValueError, match="`dt0` must have the sign of t1 - t0"):
+        lagrax.simulate(pendulum.lagrangian(), Q0, V0, 0.0, -1.0, dt0=0.1)
 
 
 def test_under_jit_and_vmap_it_is_traced_in_place(monkeypatch):

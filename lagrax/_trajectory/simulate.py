@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.extend import core as jex_core
 
 from .._checks import (
     as_time,
@@ -16,6 +17,7 @@ from .._checks import (
     check_finite,
     check_instance,
     check_solvable,
+    describe,
     is_concrete,
     positive_int,
     prepare,
@@ -106,6 +108,48 @@ def default_controller(rtol, atol, t0, t1, dtype):
     return dfx.PIDController(rtol=rtol, atol=atol, dtmin=dtmin, force_dtmin=False)
 
 
+def check_save_times(saveat: dfx.SaveAt, t0, t1):
+    """Raises on save times (`saveat.ts`, of every `SubSaveAt`) that `diffrax`
+    refuses, where they and `t0`, `t1` are concrete: from t0 towards t1 (one way, as
+    diffrax asks) and between them; also 1-D, real and finite. Compared as exact
+    values: diffrax rounds them to its time dtype first, which keeps their order, so
+    nothing it refuses passes here (an eager call's program relies on it)."""
+    subs = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, dfx.SubSaveAt))
+    for sub in subs:
+        ts = getattr(sub, "ts", None)
+        if ts is None or not is_concrete(ts, t0, t1):
+            continue
+        dtype = jnp.result_type(ts)
+        # (diffrax takes integer times too)
+        if not any(jnp.issubdtype(dtype, k) for k in (jnp.floating, jnp.integer)):
+            raise TypeError(
+                f"`saveat.ts` must be an array of real times; got {describe(ts)}."
+            )
+        if jnp.ndim(ts) != 1:
+            raise ValueError(
+                f"`saveat.ts` must be a 1-D array of times; got shape {jnp.shape(ts)}."
+            )
+        ts = np.asarray(ts, dtype=np.float64)  # (exact for float32 and float64)
+        check_finite(ts, "saveat.ts")
+        start, end = float(t0), float(t1)
+        way = 1.0 if start < end else -1.0  # (diffrax's direction; t0 == t1 too)
+        back = np.nonzero(way * ts[1:] < way * ts[:-1])[0]
+        if back.size:
+            i = int(back[0]) + 1
+            order = "increasing" if way > 0 else "decreasing"
+            raise ValueError(
+                f"`saveat.ts` must run from t0 to t1 ({order}: t0={start}, "
+                f"t1={end}); got ts[{i}]={ts[i]} after ts[{i - 1}]={ts[i - 1]}."
+            )
+        outside = np.nonzero((way * ts < way * start) | (way * ts > way * end))[0]
+        if outside.size:
+            i = int(outside[0])
+            raise ValueError(
+                f"`saveat.ts` must lie between t0={start} and t1={end}; got "
+                f"ts[{i}]={ts[i]}."
+            )
+
+
 def _mark_nonfinite(sol: dfx.Solution) -> dfx.Solution:
     """A fixed-step solve has no error estimate to reject a NaN step: flag it here."""
     if sol.ys is None:
@@ -154,9 +198,7 @@ def simulate(
     scan) reuses the program, its values reaching it as arguments, and on a CPU a
     later process loads it from the library's disk cache of executables (without
     tracing it where the call holds no function of yours besides `L`, such as a
-    `force` or an event's condition; not with `saveat=SaveAt(ts=...)` or a `dt0`,
-    whose checks in diffrax's program call back into Python, which no executable
-    on disk can hold).
+    `force` or an event's condition).
 
     **Arguments:**
 
@@ -186,8 +228,9 @@ def simulate(
     **Raises:**
 
     - `TypeError`/`ValueError`: bad `L`, `q0`, `qdot0`, times or tolerances (the message
-        names the argument); in an eager call also a singular mass matrix or non-finite
-        accelerations at the initial state.
+        names the argument); in an eager call also save times `saveat.ts` that do not
+        run from `t0` to `t1`, a `dt0` of the wrong sign, a singular mass matrix or
+        non-finite accelerations at the initial state.
     - `RuntimeError` (eager) or an equinox runtime error (under `jit`): the solve failed
         and `throw=True`.
 
@@ -227,14 +270,19 @@ def simulate(
         check_finite(dt0, "dt0")
         if is_concrete(dt0) and float(dt0) == 0:
             raise ValueError("`dt0` must be a nonzero initial step; got dt0=0.")
-        if is_concrete(dt0, t0, t1) and float(dt0) * (float(t1) - float(t0)) < 0:
+        # (Signs, not their product: no underflow lets a wrong sign through.)
+        if is_concrete(dt0, t0, t1) and (
+            np.sign(float(dt0)) * np.sign(float(t1) - float(t0)) < 0
+        ):
             raise ValueError(
                 f"`dt0` must have the sign of t1 - t0; got dt0={float(dt0)} with "
                 f"t0={float(t0)}, t1={float(t1)}."
             )
     if saveat is None:
         saveat = dfx.SaveAt(t1=True)
-    eager = is_concrete(q0, qdot0, t0, t1, dt0)
+    else:
+        check_save_times(saveat, t0, t1)
+    eager = is_concrete(q0, qdot0, t0, t1, dt0, saveat)
     taylor_cpu = isinstance(solver, Taylor) and jax.default_backend() == "cpu"
     call = None
     if eager:
@@ -446,8 +494,117 @@ class _Unkeyed(Exception):
 
 def _solve(static, arrays):
     """The eager solve of `simulate` (`_Call` split by `_split`): the solution's
-    fields as plain containers of arrays, and whether it failed."""
+    fields as plain containers of arrays, and whether it failed.
+
+    diffrax checks save times and `dt0` inside its program, by a callback to Python
+    where they are arrays, and a program with a callback cannot be written to disk.
+    `simulate` makes the same checks on the host first (`check_save_times`, its
+    checks of `dt0`), so here those branches are dropped (`_host_checked`)."""
     c = _join(static, arrays)
+    if c.dt0 is None and not _saves_at_times(c.saveat):
+        return _solve_call(c)
+    solve = lambda arrays: _solve_call(_join(static, arrays))
+    closed, out = jax.make_jaxpr(solve, return_shape=True)(arrays)
+    outs = jex_core.jaxpr_as_fun(_host_checked(closed))(*jax.tree.leaves(arrays))
+    return jax.tree.unflatten(jax.tree.structure(out), outs)
+
+
+def _saves_at_times(saveat) -> bool:
+    if isinstance(saveat, _SaveAt):
+        return saveat.ts is not None
+    is_sub = lambda x: isinstance(x, dfx.SubSaveAt)
+    return any(s.ts is not None for s in jax.tree.leaves(saveat.subs, is_leaf=is_sub))
+
+
+# What diffrax's checks of save times and `dt0` say (as prefixes): the checks that
+# `simulate` makes on the host before an eager solve.
+_HOST_CHECKED = (
+    "saveat.ts must be increasing or decreasing.",
+    "saveat.ts must lie between t0 and t1.",
+    "Must have (t1 - t0) * dt0 >= 0",
+)
+
+
+def _host_checked(closed):
+    """`closed` (a `ClosedJaxpr`) without the callbacks of its `equinox.error_if`
+    branches whose every message is in `_HOST_CHECKED`: each such `cond` takes its
+    branch without error whatever its predicate. Every other callback is kept."""
+    return _map_jaxprs(closed)
+
+
+def _drop_checked(jaxpr):
+    """`_host_checked` of an open jaxpr (`jaxpr` itself where nothing changes)."""
+    eqns = []
+    for eqn in jaxpr.eqns:
+        params = eqn.params
+        if eqn.primitive.name == "cond" and _checked_error(params["branches"]):
+            ok = params["branches"][0]
+            params = {**params, "branches": (ok, ok)}
+        else:
+            params = {k: _map_jaxprs(v) for k, v in params.items()}
+        changed = any(params[k] is not v for k, v in eqn.params.items())
+        eqns.append(eqn.replace(params=params) if changed else eqn)
+    if all(a is b for a, b in zip(eqns, jaxpr.eqns)):
+        return jaxpr
+    return jaxpr.replace(eqns=eqns)
+
+
+def _map_jaxprs(value):
+    """A parameter of an equation with the jaxprs in it passed to `_drop_checked`
+    (`value` itself where nothing changes)."""
+    if isinstance(value, jex_core.ClosedJaxpr):
+        jaxpr = _drop_checked(value.jaxpr)
+        return value if jaxpr is value.jaxpr else value.replace(jaxpr=jaxpr)
+    if isinstance(value, jex_core.Jaxpr):
+        return _drop_checked(value)
+    if isinstance(value, tuple) and any(
+        isinstance(v, jex_core.ClosedJaxpr | jex_core.Jaxpr) for v in value
+    ):
+        mapped = tuple(_map_jaxprs(v) for v in value)
+        return value if all(a is b for a, b in zip(mapped, value)) else mapped
+    return value
+
+
+def _checked_error(branches) -> bool:
+    """Whether a `cond`'s branches are `equinox.error_if`'s (no callback where its
+    predicate is false; callbacks raising `_HOST_CHECKED` messages where true)."""
+    if len(branches) != 2 or _callbacks(branches[0].jaxpr):
+        return False
+    messages = [_error_messages(f) for f in _callbacks(branches[1].jaxpr)]
+    return bool(messages) and all(
+        m is not None and all(x.startswith(_HOST_CHECKED) for x in m) for m in messages
+    )
+
+
+def _callbacks(jaxpr) -> list:
+    """The Python functions of the callbacks in `jaxpr` and the jaxprs nested in it."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if "callback" in eqn.primitive.name:
+            found.append(eqn.params.get("callback"))
+        for sub in jex_core.jaxprs_in_params(eqn.params):
+            found += _callbacks(sub)
+    return found
+
+
+def _error_messages(callback):
+    """The messages an `equinox.error_if` callback raises, or None for any other."""
+    fn = getattr(callback, "callback_func", callback)
+    code = getattr(fn, "__code__", None)
+    if code is None or getattr(fn, "__module__", None) != "equinox._errors":
+        return None
+    cells = dict(zip(code.co_freevars, fn.__closure__ or ()))
+    try:
+        messages = cells["msgs"].cell_contents
+    except (KeyError, ValueError):
+        return None
+    if not all(isinstance(m, str) for m in messages):
+        return None
+    return tuple(messages)
+
+
+def _solve_call(c):
+    """`_solve` of a joined `_Call`."""
     controller = c.controller
     if isinstance(controller, _DefaultController):
         t0, t1, dtype = c.t0, c.t1, c.y0[0].dtype
