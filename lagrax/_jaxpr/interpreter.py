@@ -8,8 +8,10 @@ function, `jax.checkpoint`, custom derivatives), whose bodies are evaluated inli
 that each user sees only primitives. Each user supplies its rule for one equation.
 """
 
+import functools
 from collections.abc import Callable, Iterator
 
+import jax
 from jax.extend import core as jex_core
 
 
@@ -32,6 +34,14 @@ CUSTOM_DERIVATIVE_CALLS = {
     "custom_vjp_call": "call_jaxpr",
     "custom_vjp_call_jaxpr": "fun_jaxpr",
 }
+
+
+@functools.cache
+def mul_params() -> dict:
+    """`lax.mul_p`'s parameters as JAX itself binds them (`out_dtype` in recent
+    versions): a `mul` bound with fewer runs forward but fails under `jax.grad`,
+    whose transpose rule requires them."""
+    return dict(jax.make_jaxpr(jax.lax.mul)(1.0, 1.0).eqns[0].params)
 
 
 def body(eqn, custom: bool = False):

@@ -209,7 +209,7 @@ def _add(a, b):
 
 
 def _mul(a, b):
-    return _bind(jax.lax.mul_p, (a, b), {})
+    return _bind(jax.lax.mul_p, (a, b), interpreter.mul_params())
 
 
 def _fold(f, values):

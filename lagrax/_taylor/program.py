@@ -179,7 +179,7 @@ class _Program:
             s, c = self._add("sinhcosh", None, args, {}, avals * 2, True)
             return [s if name == "sinh" else c]
         if name == "square":
-            return self._add("mul", lax.mul_p, [args[0]] * 2, {}, avals, True)
+            return self._mul([args[0]] * 2, avals, True)
         if name == "integer_pow":
             return [self._integer_pow(args[0], params["y"], avals[0])]
         if name == "exp2":
@@ -193,16 +193,22 @@ class _Program:
                     avals,
                     False,
                 )[0]
-            (u,) = self._add("mul", lax.mul_p, [args[0], ln2], {}, avals, True)
+            (u,) = self._mul([args[0], ln2], avals, True)
             return self._add("exp", lax.exp_p, [u], {}, avals, True)
         if name == "pow":
             u, w = args
             if w in self.series:
                 # u**w = exp(w log u): a series exponent is rare (no dedicated rule).
                 (lu,) = self._add("log", lax.log_p, [u], {}, avals, u in self.series)
-                (e,) = self._add("mul", lax.mul_p, [w, lu], {}, avals, True)
+                (e,) = self._mul([w, lu], avals, True)
                 return self._add("exp", lax.exp_p, [e], {}, avals, True)
         return self._add(name, prim, args, params, avals, True)
+
+    def _mul(self, args, avals, series):
+        """`_add` of a product, with the parameters JAX binds `mul` with."""
+        return self._add(
+            "mul", lax.mul_p, args, interpreter.mul_params(), avals, series
+        )
 
     def _broadcast(self, a, aval):
         shape = self.avals[a].shape
@@ -232,14 +238,12 @@ class _Program:
                 result = (
                     base
                     if result is None
-                    else self._add("mul", lax.mul_p, [result, base], {}, [aval], True)[
-                        0
-                    ]
+                    else self._mul([result, base], [aval], True)[0]
                 )
             n >>= 1
             if not n:
                 return result
-            base = self._add("mul", lax.mul_p, [base, base], {}, [aval], True)[0]
+            base = self._mul([base, base], [aval], True)[0]
 
     def _prune(self, outs=None):
         """Drops equations the output (or `outs`) does not depend on."""

@@ -29,7 +29,8 @@ def positions(*, l1=1.0, l2=1.0):
 def lagrangian(*, m1=1.0, m2=1.0, l1=1.0, l2=1.0, g=1.0):
     r"""$L = \frac12 m_1|\dot r_1|^2 + \frac12 m_2|\dot r_2|^2 - g(m_1y_1 + m_2y_2)$ by
     `lagrax.particle_lagrangian`, $q = (\theta_1, \theta_2)$."""
-    masses = jnp.stack([jnp.asarray(m1, dtype=float), jnp.asarray(m2, dtype=float)])
+    # (Python numbers become an array through NumPy: no XLA computation to compile.)
+    masses = jnp.array([m1, m2], dtype=float)
     return particle_lagrangian(
         masses, positions(l1=l1, l2=l2), lambda r, t: g * jnp.dot(masses, r[:, 1])
     )
