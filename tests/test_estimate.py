@@ -237,6 +237,7 @@ def test_period_returns_its_estimate_on_request():
     # in test_the_bound_vouches_without_a_second_solve, for `period` with -m slow.)
     T, est = lagrax.period(PENDULUM, 2.0, error_estimate=True)
     true = abs(float(T / pendulum.period(2.0)) - 1)
+    assert true <= 1e-12
     assert true <= float(est) <= 100 * max(true, FLOOR)
 
 

@@ -155,6 +155,9 @@ def test_sorted_lanes_return_in_input_order():
     assert np.asarray(a.status)[~ok][0] == lagrax._period.period.NOT_OSCILLATING
     exact = lagrax.systems.pendulum.period(q0[ok], r=1.0, g=1.0)
     np.testing.assert_allclose(np.asarray(a.periods)[ok], exact, rtol=1e-12)
+    # The estimate bounds the error with lanes refilled (chunk 8 of 41).
+    err = np.abs(np.asarray(a.periods)[ok] / np.asarray(exact) - 1)
+    assert np.all(np.asarray(a.error_estimate)[ok] >= err)
 
 
 def test_status_codes_at_release():
