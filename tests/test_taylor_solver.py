@@ -169,6 +169,10 @@ def test_gradient_with_respect_to_a_parameter():
     assert abs(float(jax.grad(T_of_g)(g)) / float(exact) - 1) < 1e-8
 
 
+# A Dopri8 program of its own. Every time in tests/test_estimate.py
+# (test_the_default_steps_with_taylor_where_it_can): a plain Taylor() names `erf`, and
+# the default falls back to Dopri8, every lane a success.
+@pytest.mark.slow
 def test_unsupported_primitive_is_named():
     def L(q, qdot, t):
         return 0.5 * qdot[0] ** 2 - jax.lax.erf(q[0]) * q[0]
