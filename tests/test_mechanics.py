@@ -248,12 +248,14 @@ def test_scalarized_equals_array_evaluation(key, n):
         M, rhs = _lagrange_terms(L, q, qdot, 0.4)
         return _solve_definite(M, rhs + force(q, qdot, 0.4))[0]
 
-    got = jax.vmap(lambda a, b: _accelerations(L, a, b, 0.4, force)[0])(q, qdot)
-    want = jax.vmap(unfused)(q, qdot)
+    # (Under jit: one program each, not one per primitive.)
+    fused = lambda a, b: _accelerations(L, a, b, 0.4, force)[0]
+    got = jax.jit(jax.vmap(fused))(q, qdot)
+    want = jax.jit(jax.vmap(unfused))(q, qdot)
     np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
     # Derivatives through it agree too (gradients through a solve).
-    g1 = jax.grad(lambda q: jnp.sum(_accelerations(L, q, qdot[0], 0.4, force)[0]))(q[0])
-    g2 = jax.grad(lambda q: jnp.sum(unfused(q, qdot[0])))(q[0])
+    g1 = jax.jit(jax.grad(lambda q: jnp.sum(fused(q, qdot[0]))))(q[0])
+    g2 = jax.jit(jax.grad(lambda q: jnp.sum(unfused(q, qdot[0]))))(q[0])
     np.testing.assert_allclose(g1, g2, rtol=1e-12, atol=1e-12)
 
 
