@@ -19,7 +19,7 @@ def _acc(L, q, qdot, t=0.0, force=None):
 def test_pendulum_matches_hand_derivation(key, m, r, g):
     L = pendulum.lagrangian(m=m, r=r, g=g)
     q, qdot = random_states(key, 1, 50, scale=2.0)
-    got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(q, qdot)
+    got = jax.jit(jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0)))(q, qdot)
     want = pendulum.acceleration(q, r=r, g=g)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14 * g / r)
 
@@ -31,7 +31,9 @@ def test_cycloid_matches_hand_derivation(key, m, R, g):
     kq, kv = jax.random.split(key)
     theta = jax.random.uniform(kq, (50, 1), minval=0.05, maxval=2 * jnp.pi - 0.05)
     thetadot = jax.random.normal(kv, (50, 1))
-    got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(theta, thetadot)
+    got = jax.jit(jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0)))(
+        theta, thetadot
+    )
     want = cycloid.acceleration(theta, thetadot, R=R, g=g)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
     residual = (
@@ -46,7 +48,7 @@ def test_cycloid_u_form_is_harmonic(key):
     R, g = 0.7, 9.81
     L = cycloid.lagrangian_u(R=R, g=g)
     u, udot = random_states(key, 1, 20)
-    got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(u, udot)
+    got = jax.jit(jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0)))(u, udot)
     np.testing.assert_allclose(got, -(g / (4 * R)) * u, rtol=1e-13)
 
 
@@ -60,7 +62,7 @@ def test_rectilinear_recovers_newton(key):
     m = 1.7
     L = rectilinear.lagrangian(V, m=m)
     q, qdot = random_states(key, 1, 40, scale=1.5)
-    got = jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0))(q, qdot)
+    got = jax.jit(jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0)))(q, qdot)
     np.testing.assert_allclose(got, rectilinear.acceleration(q, F, m=m), rtol=1e-12)
 
 
@@ -248,12 +250,14 @@ def test_scalarized_equals_array_evaluation(key, n):
         M, rhs = _lagrange_terms(L, q, qdot, 0.4)
         return _solve_definite(M, rhs + force(q, qdot, 0.4))[0]
 
-    got = jax.vmap(lambda a, b: _accelerations(L, a, b, 0.4, force)[0])(q, qdot)
-    want = jax.vmap(unfused)(q, qdot)
+    # (Under jit: one program each, not one per primitive.)
+    fused = lambda a, b: _accelerations(L, a, b, 0.4, force)[0]
+    got = jax.jit(jax.vmap(fused))(q, qdot)
+    want = jax.jit(jax.vmap(unfused))(q, qdot)
     np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
     # Derivatives through it agree too (gradients through a solve).
-    g1 = jax.grad(lambda q: jnp.sum(_accelerations(L, q, qdot[0], 0.4, force)[0]))(q[0])
-    g2 = jax.grad(lambda q: jnp.sum(unfused(q, qdot[0])))(q[0])
+    g1 = jax.jit(jax.grad(lambda q: jnp.sum(fused(q, qdot[0]))))(q[0])
+    g2 = jax.jit(jax.grad(lambda q: jnp.sum(unfused(q, qdot[0]))))(q[0])
     np.testing.assert_allclose(g1, g2, rtol=1e-12, atol=1e-12)
 
 

@@ -28,7 +28,7 @@ def test_energy_conserved_pendulum():
         saveat=dfx.SaveAt(ts=ts),
     )
     qs, qdots = sol.ys
-    h = jax.vmap(lambda q, v: lagrax.energy(L, q, v, 0.0))(qs, qdots)
+    h = jax.jit(jax.vmap(lambda q, v: lagrax.energy(L, q, v, 0.0)))(qs, qdots)
     assert np.max(np.abs(h - h[0])) / abs(h[0]) < 1e-9
     # and the swing really is large: it reaches the other side.
     assert np.min(qs) < -2.4
@@ -56,7 +56,7 @@ def test_energy_conserved_double_pendulum_like_coupled_system():
         atol=1e-10,
         saveat=dfx.SaveAt(ts=ts),
     )
-    h = jax.vmap(lambda q, v: lagrax.energy(L, q, v, 0.0))(*sol.ys)
+    h = jax.jit(jax.vmap(lambda q, v: lagrax.energy(L, q, v, 0.0)))(*sol.ys)
     assert np.max(np.abs(h - h[0])) < 1e-8
 
 
@@ -79,9 +79,9 @@ def test_cycloid_reduction_along_trajectory():
         saveat=dfx.SaveAt(ts=ts),
     )
     theta, thetadot = sol.ys[0][:, 0], sol.ys[1][:, 0]
-    thetaddot = jax.vmap(lambda a, b: lagrax.accelerations(L, a[None], b[None])[0])(
-        theta, thetadot
-    )
+    thetaddot = jax.jit(
+        jax.vmap(lambda a, b: lagrax.accelerations(L, a[None], b[None])[0])
+    )(theta, thetadot)
     u = jnp.cos(theta / 2)
     uddot = -0.25 * jnp.cos(theta / 2) * thetadot**2 - 0.5 * jnp.sin(theta / 2) * (
         thetaddot

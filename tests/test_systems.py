@@ -112,10 +112,13 @@ def test_system_module_shape(name, key):
     q = jax.random.uniform(kq, (20, n), minval=lo, maxval=hi)
     qdot = jax.random.normal(kv, (20, n))
     t = jnp.linspace(0.0, 2.0, 20)
-    got = jax.vmap(lambda a, b, s: lagrax.accelerations(L, a, b, s, force=force))(
+    # (Under jit: one program each, not one per primitive.)
+    got = jax.jit(
+        jax.vmap(lambda a, b, s: lagrax.accelerations(L, a, b, s, force=force))
+    )(q, qdot, t)
+    want = jax.jit(jax.vmap(lambda a, b, s: module.acceleration(a, b, s, **params)))(
         q, qdot, t
     )
-    want = jax.vmap(lambda a, b, s: module.acceleration(a, b, s, **params))(q, qdot, t)
     assert want.shape == (20, n)
     np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11)
     if hasattr(module, "period"):

@@ -23,8 +23,8 @@ def _sweep(L, q0, **kw):
     return lagrax.sweep_periods(L, q0, **kw)
 
 
-# "matched" (the default method) with its error estimate (the default too) in
-# test_estimate_bounds_error below: one compiled sweep for both claims.
+# "matched" (the default method) with its error estimate (the default too):
+# test_estimate_bounds_error below, with -m slow.
 @pytest.mark.parametrize("method", ["quarter", "half"])
 def test_pendulum_periods_exact(method):
     res = _sweep(PENDULUM, AMPS, method=method, error_estimate=False)
@@ -93,6 +93,12 @@ def test_cycloid_isochronous_and_asymmetric_well():
     assert np.max(np.abs(np.asarray(res.periods) / ref - 1)) < 1e-10
 
 
+# A program of its own. Taylor, "matched", the estimate at rtol 1e-13 runs every time
+# in tests/test_estimate.py (test_pendulum_default_method_meets_1e12_with_bounded_
+# estimates[taylor]: 256 amplitudes to 3.1, error <= 1e-12 <= estimate), and with a
+# chunk smaller than the sweep (lanes refilled) in tests/test_period.py
+# (test_sorted_lanes_return_in_input_order: chunk 8, estimate >= error).
+@pytest.mark.slow
 def test_estimate_bounds_error():
     # "matched": the periods exact to the tolerance, and the estimate above the error.
     # (Without the estimate: tests/test_estimate.py, on the pendulum up to π - 1e-3.)
@@ -121,6 +127,10 @@ def test_failing_lanes_leave_others_alone():
     )
 
 
+# A one-lane program of its own: `period` with Taylor (the default solver) within
+# 1e-12 of the exact period runs every time in tests/test_estimate.py
+# (test_period_returns_its_estimate_on_request).
+@pytest.mark.slow
 def test_period_matches_exact():
     q0 = jnp.asarray(1.3)
     T = lagrax.period(PENDULUM, q0, solver=TAYLOR, method="quarter", rtol=1e-13)
@@ -159,6 +169,10 @@ def test_gradient_with_respect_to_a_parameter():
     assert abs(float(jax.grad(T_of_g)(g)) / float(exact) - 1) < 1e-8
 
 
+# A Dopri8 program of its own. Every time in tests/test_estimate.py
+# (test_the_default_steps_with_taylor_where_it_can): a plain Taylor() names `erf`, and
+# the default falls back to Dopri8, every lane a success.
+@pytest.mark.slow
 def test_unsupported_primitive_is_named():
     def L(q, qdot, t):
         return 0.5 * qdot[0] ** 2 - jax.lax.erf(q[0]) * q[0]

@@ -119,7 +119,9 @@ def _energy_window_maxima(solver, h, periods, windows=10):
     assert sol.result == dfx.RESULTS.successful
     qs, qdots = sol.ys
     keep = np.isfinite(np.asarray(sol.ts))
-    energy = jax.vmap(lambda q, v: lagrax.energy(PENDULUM, q, v, 0.0))(qs, qdots)
+    energy = jax.jit(jax.vmap(lambda q, v: lagrax.energy(PENDULUM, q, v, 0.0)))(
+        qs, qdots
+    )
     error = np.abs(np.asarray(energy)[keep] - float(lagrax.energy(PENDULUM, *y0)))
     return np.array([w.max() for w in np.array_split(error, windows)])
 
@@ -155,7 +157,9 @@ def test_noether_momentum_of_cyclic_coordinate_exact():
     sol = _solve(L, y0, nsteps * 0.05, 0.05, saveat=saveat, max_steps=nsteps)
     assert sol.result == dfx.RESULTS.successful
     qs, qdots = sol.ys
-    p_phi = jax.vmap(lambda q, v: lagrax.momenta(L, q, v, 0.0))(qs, qdots)[:, 1]
+    p_phi = jax.jit(jax.vmap(lambda q, v: lagrax.momenta(L, q, v, 0.0)))(qs, qdots)[
+        :, 1
+    ]
     p_phi0 = float(lagrax.momenta(L, *y0, 0.0)[1])
     eps = np.finfo(np.float64).eps
     # Round-off only: a random walk of about an ulp per step, ~sqrt(2000) ulps.
@@ -382,14 +386,16 @@ def test_gauss_legendre_noether_momentum_exact(cls):
     )
     assert sol.result == dfx.RESULTS.successful
     qs, qdots = sol.ys
-    p_phi = jax.vmap(lambda q, v: lagrax.momenta(L, q, v, 0.0))(qs, qdots)[:, 1]
+    p_phi = jax.jit(jax.vmap(lambda q, v: lagrax.momenta(L, q, v, 0.0)))(qs, qdots)[
+        :, 1
+    ]
     p_phi0 = float(lagrax.momenta(L, *y0, 0.0)[1])
     eps = np.finfo(np.float64).eps
     bound = 10 * np.sqrt(nsteps) * eps * abs(p_phi0)
     assert np.max(np.abs(np.asarray(p_phi) - p_phi0)) < bound
     assert abs(float(sol.solver_state[0][1]) - p_phi0) < bound
     # The energy moves at truncation level meanwhile: the step is not trivially small.
-    energy = jax.vmap(lambda q, v: lagrax.energy(L, q, v, 0.0))(qs, qdots)
+    energy = jax.jit(jax.vmap(lambda q, v: lagrax.energy(L, q, v, 0.0)))(qs, qdots)
     assert float(jnp.max(jnp.abs(energy - energy[0]))) > 1e3 * bound
 
 
