@@ -2,6 +2,7 @@
 `simulate`, saved times, per-release spans and outcomes, the fallback."""
 
 import diffrax as dfx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -39,6 +40,23 @@ def test_refilling_lanes_per_release_spans_and_directions():
     # Longer spans take more steps, each release its own count.
     steps = np.asarray(sol.stats["num_steps"])
     assert steps[3] > steps[0] > 0
+
+
+def test_under_a_callers_jit_with_its_compiler_options():
+    # Inside a user's `jit` the loop is traced into that program (a nested `jit`
+    # takes no compiler options); the same states as the eager call.
+    q0, v0 = np.array([[1.0, 0.2], [0.3, -0.4]]), np.array([[0.0, 0.1], [-0.5, 0.0]])
+
+    def end(q0, t1):
+        sol = lagrax.simulate_batch(
+            oscillator, q0, v0, 0.0, t1, solver=TAYLOR, rtol=1e-12, atol=1e-12
+        )
+        return sol.ys[0][:, -1]
+
+    options = {"xla_cpu_use_fusion_emitters": False}
+    jitted = jax.jit(end, compiler_options=options)(jnp.asarray(q0), 2.0)
+    np.testing.assert_allclose(jitted, end(q0, 2.0), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(jitted, exact(q0, v0, 2.0)[0], atol=1e-10)
 
 
 def test_saved_times_from_the_step_polynomials():

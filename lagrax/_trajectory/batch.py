@@ -374,7 +374,13 @@ def simulate_batch(
     `adjoint`, a `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate`
     with the same arguments. The loop is compiled per body of `L`: a rebuilt `L` with
     new parameter values reuses it (they reach it as arguments), and on a CPU a later
-    process loads it from the library's disk cache without tracing it.
+    process loads it from the library's disk cache without tracing it. Under your own
+    `jax.jit` the loop becomes part of your program: on a CPU give that `jit`
+    `compiler_options={"xla_cpu_use_fusion_emitters": False}` (as for `Taylor`;
+    XLA's default emitters take minutes to compile the loop). Forward mode
+    (`jax.jvp`, `jax.jacfwd`) differentiates it; reverse mode does not (a
+    `lax.while_loop`): for `jax.grad`, `jax.vmap` of `lagrax.simulate` with a
+    diffrax adjoint.
 
     **Arguments:** as `lagrax.simulate`, with `q0`, `qdot0` of shape `(B, n)`,
     `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, and
@@ -466,7 +472,15 @@ def simulate_batch(
             origin=(_compiled, cpu, devices[:D]),
         )  # fmt: skip
     else:
-        out = jitted(cfg, shape, *args, ts_arr, consts)
+        try:
+            out = jitted(cfg, shape, *args, ts_arr, consts)
+        except ValueError as error:
+            # Staged into a caller's `jit` (or `grad`): a nested `jit` takes no
+            # compiler options there, the caller's apply (the docstring says which).
+            if "compiler_options" not in str(error):
+                raise
+            jitted = _compiled(False, devices[:D])
+            out = jitted(cfg, shape, *args, ts_arr, consts)
     ts_out, qs, vs, result, nsteps, zeros, failed = out
     result = jax.tree.unflatten(_RESULT_TREE, [result])
     sol = dfx.Solution(
