@@ -150,7 +150,7 @@ def test_gradient_matches_exact():
 
 
 @pytest.mark.slow  # ~25 s on one core; parameter gradients of the kernel are also
-# tested with Dopri8 in the default suite (tests/test_period.py).
+# tested in the default suite (a track's parameters, tests/test_gradients.py).
 def test_gradient_with_respect_to_a_parameter():
     def T_of_g(g):
         L = pendulum.lagrangian(g=g)

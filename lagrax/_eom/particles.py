@@ -367,6 +367,16 @@ def _time_and_rtol(t, rtol, dtype):
     return as_time(t, "t", dtype), positive_scalar(rtol, "rtol", dtype)
 
 
+# One compiled program each for the checks' arithmetic: called eagerly, op by op, it
+# compiles a small XLA program per operation (about a hundred on a first call).
+@eqx.filter_jit
+def _surface(constraints, r, t, rtol):
+    """The constraint values at `r`, the degrees of freedom there, and how far `r`
+    is off the surface relative to `rtol` (`_violation`)."""
+    values, jac = _constraint_values(constraints, r, t)
+    return values, r.size - _rank(jac), _violation(values, jac, r, rtol)
+
+
 def degrees_of_freedom(constraints: Callable, r, t=0.0, *, rtol=1e-8):
     r"""Degrees of freedom, $n = dN - \mathrm{rank}(\partial f/\partial r)$.
 
@@ -404,9 +414,7 @@ def degrees_of_freedom(constraints: Callable, r, t=0.0, *, rtol=1e-8):
     """
     r = _as_configuration(r)
     t, rtol = _time_and_rtol(t, rtol, r.dtype)
-    values, jac = _constraint_values(constraints, r, t)
-    n = r.size - _rank(jac)
-    ratio = _violation(values, jac, r, rtol)
+    values, n, ratio = _surface(constraints, r, t, rtol)
     if is_concrete(r, t, rtol, values):
         if not bool(ratio <= 1):
             raise ValueError(
@@ -419,6 +427,35 @@ def degrees_of_freedom(constraints: Callable, r, t=0.0, *, rtol=1e-8):
     return eqx.error_if(
         n, ~(ratio <= 1), "`r` does not satisfy the constraints (degrees_of_freedom)."
     )
+
+
+@eqx.filter_jit
+def _embedding(positions, constraints, q, t, rtol):
+    """`check_embedding`'s measures at `(q, t)` (one compiled program: `_surface`):
+    `r`, the constraint values, the degrees of freedom, the rank of ∂r/∂q, and the
+    violation and the leak off the surface, each relative to `rtol`."""
+    r = positions(q, t).astype(q.dtype)
+    values, jac_f = _constraint_values(constraints, r, t)
+    n = q.shape[0]
+    jac_r, dr_dt = jax.jacfwd(positions, argnums=(0, 1))(q, t)
+    jac_r = jac_r.reshape(r.size, n)
+    dr_dt = dr_dt.reshape(r.size)
+    df_dt = jax.jacfwd(lambda t: jnp.reshape(constraints(r, t), (-1,)))(t)
+    dof = r.size - _rank(jac_f)
+    rank_r = _rank(jac_r)
+    violated = _violation(values, jac_f, r, rtol)
+    # Tangency: the cosine between each constraint normal ∇f_i and each coordinate
+    # direction ∂r/∂q_j (and the motion of r along t) must vanish.
+    tiny = jnp.finfo(r.dtype).tiny
+    grad_norm = jnp.maximum(jnp.linalg.norm(jac_f, axis=1), tiny)
+    col_norm = jnp.maximum(jnp.linalg.norm(jac_r, axis=0), tiny)
+    leak_q = jnp.abs(jac_f @ jac_r) / (grad_norm[:, None] * col_norm[None, :])
+    speed = jnp.maximum(jnp.linalg.norm(dr_dt), tiny)
+    leak_t = jnp.abs(jac_f @ dr_dt + df_dt) / (grad_norm * speed)
+    leak = (
+        jnp.maximum(jnp.max(leak_q, initial=0.0), jnp.max(leak_t, initial=0.0)) / rtol
+    )
+    return r, values, dof, rank_r, violated, leak
 
 
 def check_embedding(
@@ -469,30 +506,10 @@ def check_embedding(
         )
     t, rtol = _time_and_rtol(t, rtol, q.dtype)
     _check_positions_output(_call_user(positions, "positions", _POSITIONS, q, t))
-    r = positions(q, t)
-    r = r.astype(q.dtype)
-    values, jac_f = _constraint_values(constraints, r, t)
     n = q.shape[0]
-    jac_r, dr_dt = jax.jacfwd(positions, argnums=(0, 1))(q, t)
-    jac_r = jac_r.reshape(r.size, n)
-    dr_dt = dr_dt.reshape(r.size)
-    df_dt = jax.jacfwd(lambda t: jnp.reshape(constraints(r, t), (-1,)))(t)
-    dof = r.size - _rank(jac_f)
-    rank_r = _rank(jac_r)
-    violated = _violation(values, jac_f, r, rtol)
-
-    # Tangency: the cosine between each constraint normal ∇f_i and each coordinate
-    # direction ∂r/∂q_j (and the motion of r along t) must vanish.
-    tiny = jnp.finfo(r.dtype).tiny
-    grad_norm = jnp.maximum(jnp.linalg.norm(jac_f, axis=1), tiny)
-    col_norm = jnp.maximum(jnp.linalg.norm(jac_r, axis=0), tiny)
-    leak_q = jnp.abs(jac_f @ jac_r) / (grad_norm[:, None] * col_norm[None, :])
-    speed = jnp.maximum(jnp.linalg.norm(dr_dt), tiny)
-    leak_t = jnp.abs(jac_f @ dr_dt + df_dt) / (grad_norm * speed)
-    leak = (
-        jnp.maximum(jnp.max(leak_q, initial=0.0), jnp.max(leak_t, initial=0.0)) / rtol
+    r, values, dof, rank_r, violated, leak = _embedding(
+        positions, constraints, q, t, rtol
     )
-
     if is_concrete(q, t, rtol, r, values):
         where = f"q = {np.asarray(q).tolist()}, t = {float(t)}"
         if not bool(violated <= 1):
