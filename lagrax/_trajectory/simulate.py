@@ -499,13 +499,13 @@ def _solve(static, arrays):
     diffrax checks save times and `dt0` inside its program, by a callback to Python
     where they are arrays, and a program with a callback cannot be written to disk.
     `simulate` makes the same checks on the host first (`check_save_times`, its
-    checks of `dt0`), so here those branches are dropped (`_host_checked`)."""
+    checks of `dt0`), so here those branches are dropped (`_map_jaxprs`)."""
     c = _join(static, arrays)
     if c.dt0 is None and not _saves_at_times(c.saveat):
         return _solve_call(c)
     solve = lambda arrays: _solve_call(_join(static, arrays))
     closed, out = jax.make_jaxpr(solve, return_shape=True)(arrays)
-    outs = jex_core.jaxpr_as_fun(_host_checked(closed))(*jax.tree.leaves(arrays))
+    outs = jex_core.jaxpr_as_fun(_map_jaxprs(closed))(*jax.tree.leaves(arrays))
     return jax.tree.unflatten(jax.tree.structure(out), outs)
 
 
@@ -525,15 +525,11 @@ _HOST_CHECKED = (
 )
 
 
-def _host_checked(closed):
-    """`closed` (a `ClosedJaxpr`) without the callbacks of its `equinox.error_if`
-    branches whose every message is in `_HOST_CHECKED`: each such `cond` takes its
-    branch without error whatever its predicate. Every other callback is kept."""
-    return _map_jaxprs(closed)
-
-
 def _drop_checked(jaxpr):
-    """`_host_checked` of an open jaxpr (`jaxpr` itself where nothing changes)."""
+    """`jaxpr` without the callbacks of its `equinox.error_if` branches whose every
+    message is in `_HOST_CHECKED`: each such `cond` takes its branch without error
+    whatever its predicate; every other callback is kept (`jaxpr` itself where
+    nothing changes)."""
     eqns = []
     for eqn in jaxpr.eqns:
         params = eqn.params
