@@ -26,7 +26,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .._jaxpr import interpreter, scalarize as _scalarize
-from .._jaxpr.fusion import fusion_off, one_fusion
+from .._jaxpr.fusion import fusion_off
 from . import solve as _solve
 from .program import _initial, _Order0, _Program, _Store, _Unrolled
 from .recurrences import _order_k, _RULES
@@ -266,8 +266,6 @@ class System:
         lanes = {h: (lambda h=h: zero.lanes(h)) for h in prog.series if h in zero.val}
         if unrolled:
             return self._unrolled(K, zero, lanes, t, ys, f0)
-        if self.scalar:
-            return self._fused(K, zero, lanes, t, ys, f0)
         return self._looped(K, zero, lanes, t, ys, f0)
 
     def _unrolled(self, K, zero, lanes, t, ys, f0):
@@ -338,144 +336,6 @@ class System:
         arrays = lax.fori_loop(1, K, listed, [store[h] for h in handles])
         store = dict(zip(handles, arrays))
         return [list(store[i][0]) for i in y_ids]
-
-    def _fused(self, K, zero, lanes, t, ys, f0):
-        """As `_looped` for a program on scalar entries, each order two loops over
-        the lanes (see `_Rows`): one for the stored part of every Cauchy sum, one
-        for the order's recurrences, whose new coefficients leave it through
-        `one_fusion`."""
-        prog = self.prog
-        W, dtype = t.shape[0], t.dtype
-        inputs = prog.inputs
-        n_in = len(inputs)
-
-        def body(k, sums, row, first, record=None):
-            st = _Rows(zero, k, sums, first, lanes, record)
-            for r, i in enumerate(inputs):
-                st.cur[i] = jnp.zeros_like(t) if row is None else row[r]
-            _order_k(st, prog)
-            # y_{k+1} = f_k / (k + 1); t_{k+1} = 0 from k = 1 on. (A product: XLA
-            # keeps a division of the lanes out of the order's loop, with a copy of
-            # the recurrence in its own.)
-            inv = 1.0 / (st.kf + 1.0)
-            nxt = {i: jnp.zeros_like(t) for i in inputs}
-            for i, o in zip(inputs[1:], prog.outs):
-                f = st.cur.get(o) if o in prog.series else None
-                if f is not None:
-                    nxt[i] = (f * inv).astype(dtype)
-            return st, nxt
-
-        # A dry run, shapes only, finds the Cauchy sums (their series get stored)
-        # and which order-0 quantities the recurrences reuse (computed once,
-        # outside the loop).
-        record = {}
-        jax.eval_shape(lambda k: body(k, None, None, None, record)[1], jnp.int32(1))
-        zero.cache = {key: fn() for key, fn in zero.fns.items()}
-        pairs = list(record)
-        P = len(pairs)
-        # Rows of R: the inputs, then the first and the second series of each sum
-        # (a series in several sums has several rows): the stored parts read two
-        # contiguous blocks of rows, no gather.
-        rows = list(inputs) + [a for a, _ in pairs] + [b for _, b in pairs]
-        first = {h: lanes[h]() for h in rows[n_in:] if h not in inputs}
-        first[inputs[0]] = t
-        first.update(zip(inputs[1:], ys))
-        # R[K - m, r]: the m-th coefficient of row r's series for m >= 1 (order 0
-        # is `first`), zero until computed and from K on, so that a window of
-        # b_{k-j} is zero where k - j < 1.
-        R = jnp.zeros((2 * K, len(rows), W), dtype)
-        ones = jnp.ones_like(t)
-        start = dict(zip(inputs, [ones, *f0]))
-        R = R.at[K - 1].set(
-            jnp.stack([start[h] if h in start else jnp.zeros_like(t) for h in rows])
-        )
-
-        def step(k, R):
-            # sum_{j=1}^{k-1} a_j b_{k-j} of every sum over all K - 1 terms (the
-            # zeros included): one loop over (sums, lanes), whatever k.
-            S = jnp.zeros((P, W), dtype)
-            for j in range(1, K):
-                bj = lax.dynamic_index_in_dim(R, K - k + j, 0, keepdims=False)
-                S = S + R[K - j, n_in : n_in + P] * bj[n_in + P :]
-            sums = {pair: S[p] for p, pair in enumerate(pairs)}
-            row = lax.dynamic_index_in_dim(R, K - k, 0, keepdims=False)[:n_in]
-            st, nxt = body(k, sums, row, first)
-            values = {("next", i): nxt[i] for i in inputs}
-            for h in dict.fromkeys(rows):
-                c = st.cur.get(h)
-                values[h] = jnp.zeros_like(t) if c is None else c.astype(dtype)
-            # One loop over the lanes for the order's recurrences (`one_fusion`).
-            values = one_fusion(values, branch_free=True)
-            zero_t = jnp.zeros_like(t)
-            now = jnp.stack([values[h] for h in rows])
-            nxt = jnp.stack(
-                [values[("next", h)] if h in inputs else zero_t for h in rows]
-            )
-            both = jnp.stack([nxt, now])  # orders k + 1, k
-            z = 0 * k
-            return lax.dynamic_update_slice(R, both, (K - k - 1, z, z))
-
-        R = lax.fori_loop(1, K, step, R)
-        return [
-            [y] + [R[K - m, r] for m in range(1, K + 1)]
-            for r, y in zip(range(1, n_in), ys)
-        ]
-
-
-class _Rows:
-    r"""The store of `System._fused` at order $k$ (traced), its Cauchy sums split
-    as $\sum_{j=0}^{k} a_j b_{k-j} = S_{ab} + a_0 b_k + a_k b_0$: the stored part
-    $S_{ab}$ (`sums`, all orders below $k$) computed before the order's
-    recurrences, the end terms where the order-$k$ coefficient is known (`cur`: a
-    recurrence's own output is not yet, as in `_Store`). The order's recurrences
-    are then elementwise over the lanes, one loop for XLA."""
-
-    triangular = False
-
-    def __init__(self, zero, k, sums, first, lanes, record):
-        self.zero = zero
-        self.k = k
-        self.kf = k.astype(zero.prog.avals[zero.prog.inputs[0]].dtype)
-        self.sums = sums  # (a, b) -> stored part of the sum, (W,)
-        self.first = first  # handle -> order-0 coefficient (W,)
-        self.lanes = lanes  # handle -> order-0 value, for the dry run
-        self.record = record  # None, or the dict of sums asked for (dry run)
-        self.cur = {}
-
-    def aux(self, key, init0):
-        """Declares an auxiliary series with order-0 coefficient `init0()`."""
-        self.lanes.setdefault(key, init0)
-        return key
-
-    def _first(self, h):
-        if self.record is not None:
-            return self.lanes[h]()
-        return self.first[h]
-
-    def get(self, h):
-        if h in self.cur:
-            return self.cur[h]
-        if isinstance(h, int) and h not in self.zero.prog.series:
-            return None
-        raise AssertionError(h)  # pragma: no cover - recurrences read what they put
-
-    def put(self, h, value):
-        self.cur[h] = value
-
-    def conv(self, a, b):
-        r"""$\sum_{j=0}^{k} a_j b_{k-j}$."""
-        a0, b0 = self._first(a), self._first(b)
-        if self.record is not None:
-            self.record[(a, b)] = None
-            out = jnp.zeros_like(a0 * b0)
-        else:
-            out = self.sums[(a, b)]
-        ak, bk = self.cur.get(a), self.cur.get(b)
-        if bk is not None:
-            out = out + a0 * bk
-        if ak is not None:
-            out = out + ak * b0
-        return out
 
 
 def horner(cs, h):
