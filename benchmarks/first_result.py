@@ -40,13 +40,18 @@ enable one are removed from the workers' environment), float64:
   fresh process with it filled; and its steady state beside the specialized one;
   then 1000 amplitudes from the same cache (the same executable: the tape path runs
   in pieces of one size).
+- `--only tape`: the tape path alone, its cold process then three warm ones (a new g
+  each), and what its executable is made of: the size on disk and the load time of
+  the whole period program on the tape path, beside one interpreter compiled alone
+  (the step's, order 20, and one at order 0, each over 256 lanes): the program
+  inlines an interpreter at each place it evaluates L.
 
-    python benchmarks/first_result.py [--quick] [--core 1] [--only eager]
+    python benchmarks/first_result.py [--quick] [--core 1] [--only eager|tape]
 
 `--quick`: 10^3 and 4096 amplitudes only, the gradient of 64, no CLI run, the eager
 `simulate` rows with Tsit5 only. `--only eager`: the eager `simulate` rows alone.
 Writes `benchmarks/results/first_result.json` (or `first_result_quick.json`,
-`first_result_eager.json`).
+`first_result_eager.json`, `first_result_tape.json`).
 """
 
 import argparse
@@ -181,10 +186,11 @@ def work_tape(args):
 
     a = _amplitudes(args.n)
     q0 = jax.numpy.asarray(a)
-    L = pendulum.lagrangian(g=1.3)
+    g = 1.3 if args.g is None else args.g
+    L = pendulum.lagrangian(g=g)
     r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "first", stages)
     row.update(times)
-    err, failed = _max_error(r.periods, _exact(a, g=1.3))
+    err, failed = _max_error(r.periods, _exact(a, g=g))
     row.update(n=args.n, max_rel_error=err, failed=failed)
     if args.repeat:
         r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "tape_steady")
@@ -198,6 +204,47 @@ def work_tape(args):
             tape_vs_specialized=float(jax.numpy.nanmax(diff)),
             same_status=bool((r.status == r2.status).all()),
         )
+    return row
+
+
+def work_tape_parts(args):
+    """Size and load time of the tape path's executable (from `args.cache`) and of
+    one interpreter compiled alone: the step's (order 20) and one at order 0."""
+    jax, lagrax, row, _ = _jax_import()
+    import numpy as np
+    from jax.experimental import serialize_executable
+
+    from lagrax._jaxpr.canonical import canonical_lagrangian
+    from lagrax._jaxpr.fusion import ELEMENTAL
+    from lagrax._period import tier
+    from lagrax._taylor.tape import tape_coefficients, tape_series
+    from lagrax.systems import pendulum
+
+    jnp = jax.numpy
+    L_c, consts = canonical_lagrangian(pendulum.lagrangian(g=1.3), np.float64)
+    L_t, tapes = tier.tapes_of(L_c, consts, np.float64)
+    W, P = 256, L_t.n_params
+    z = jnp.zeros((W,))
+
+    def step(tape, s, x, v, params):
+        return tape_coefficients(tape, 20, s, x, v, list(params), trig=True)
+
+    def order0(tape, xs):
+        return tape_series(tape, list(xs), 0, trig=True)
+
+    parts = dict(
+        step=(step, (tapes.scaled, z, z, z, jnp.zeros((P + 3, W)))),
+        order0=(order0, (tapes.point, jnp.zeros((3 + P, W)))),
+    )
+    for name, (fn, fn_args) in parts.items():
+        compiled = jax.jit(fn, compiler_options=ELEMENTAL).lower(*fn_args).compile()
+        blob, in_tree, out_tree = serialize_executable.serialize(compiled)
+        start = _clock()
+        serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
+        row.update(_since(start, f"{name}_load"), **{f"{name}_bytes": len(blob)})
+    # (The library's entry on disk: a pickle holding the serialized executable.)
+    paths = [os.path.join(args.cache, f) for f in os.listdir(args.cache) if f[0] == "t"]
+    row["program_bytes"] = max(os.path.getsize(f) for f in paths)
     return row
 
 
@@ -389,6 +436,7 @@ def work_heyoka(args):
 WORKERS = dict(
     sweep=work_sweep,
     tape=work_tape,
+    tape_parts=work_tape_parts,
     grad=work_grad,
     simulate=work_simulate,
     batch=work_batch,
@@ -469,7 +517,8 @@ def main():
     p.add_argument("--system", default="pendulum")
     p.add_argument("--solver", default="tsit5", help="eager: tsit5, dopri8, taylor")
     p.add_argument("--ts", type=int, default=0, help="eager: save at n times")
-    p.add_argument("--only", choices=("all", "eager"), default="all")
+    p.add_argument("--only", choices=("all", "eager", "tape"), default="all")
+    p.add_argument("--cache", help="tape_parts: the cache directory to read")
     args = p.parse_args()
     if args.worker:
         print(json.dumps(WORKERS[args.worker](args)))
@@ -477,6 +526,9 @@ def main():
     if args.only == "eager":
         out = dict(eager=eager_rows(args.core, quick=args.quick))
         _write_results(args, out, "first_result_eager.json")
+        return
+    if args.only == "tape":
+        _write_results(args, tape_rows(args.core), "first_result_tape.json")
         return
     sizes = [1000, 4096] if args.quick else [1000, 4096, 10_000, 100_000, 1_000_000]
     c = args.core
@@ -573,6 +625,26 @@ def eager_rows(core, quick=False):
                 f"later process {secs(later, 'first_s')}"
             )
     return rows
+
+
+def tape_rows(core):
+    """The tape path: a cold process, three warm ones (new g each, the first also
+    its steady state beside the specialized program's), and its executable's parts."""
+    out = {}
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(LAGRAX_TAPE_TIER="1", LAGRAX_CACHE_DIR=cache)
+        out["cold"] = spawn(core, "tape", env=env, n=4096)
+        out["warm"] = [
+            spawn(core, "tape", env=env, n=4096, g=g, repeat=(g == 1.4))
+            for g in (1.4, 1.5, 1.6)
+        ]
+        out["parts"] = spawn(core, "tape_parts", cache=cache)
+    secs = lambda row: "failed" if row is None else f"{row['first_s']:.3g} s"
+    print(f"tape path, cache empty: first call {secs(out['cold'])}")
+    print("tape path, cache filled:", ", ".join(secs(r) for r in out["warm"]))
+    print("steady (tape, specialized):", json.dumps(out["warm"][0]))
+    print("parts", json.dumps(out["parts"]))
+    return out
 
 
 def _write_results(args, out, name):
