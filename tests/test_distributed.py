@@ -5,6 +5,7 @@ free port of 127.0.0.1 with gloo collectives: JAX's own multi-controller runtime
 a cluster, with no network beyond this machine.
 """
 
+import json
 import os
 import signal
 import socket
@@ -214,8 +215,9 @@ def test_cli_distributed_writes_one_file_and_resumes(tmp_path):
     port = free_port()
     procs = [start_cli(port, i, out, cache) for i in range(2)]
     deadline = time.monotonic() + HANG
-    # (A finished block: not the ".lagrax-*.npz" temporary file that is renamed to it.)
-    done = lambda: [p for p in _listdir(partial) if p.endswith(".npz") and p[0] != "."]
+    # A finished block is one whose checksum the manifest holds: the piece is written
+    # first, and a piece killed before its checksum is in is computed again.
+    done = lambda: _checksummed(partial)
     while not done():
         assert all(p.poll() is None for p in procs), procs[0].communicate()[1][-3000:]
         assert time.monotonic() < deadline, "no checkpoint was written"
@@ -241,6 +243,15 @@ def test_cli_distributed_writes_one_file_and_resumes(tmp_path):
         data["period"], np.asarray(pendulum.pendulum_period(data["amplitude"])),
         rtol=1e-12,
     )  # fmt: skip
+
+
+def _checksummed(partial):
+    """The pieces the checkpoint's manifest vouches for (written atomically)."""
+    try:
+        with open(partial / "manifest.json") as f:
+            return list(json.load(f)["pieces"])
+    except FileNotFoundError:
+        return []
 
 
 def _listdir(path):

@@ -140,7 +140,12 @@ def test_half_near_the_separatrix_is_caught_by_the_estimate(solver):
     _check_bound(res, pendulum.period(a), spread=1000.0)
 
 
-@taylor_every_time
+# A harmonic well (the cycloid in u): every time, with the default solver, as
+# test_the_far_turning_points_band_costs_nothing_in_a_harmonic_well (the bound on a
+# harmonic well) and tests/test_period.py::test_cycloid_to_the_cusp_in_u (this L's
+# default sweep, every lane a success to 1e-12).
+@pytest.mark.slow
+@solvers
 def test_cycloid_u_form_is_isochronous_with_bounded_estimates(solver):
     u0 = jnp.linspace(0.05, 0.99, 64)
     res = lagrax.sweep_periods(cycloid.lagrangian_u(), u0, solver=solver)
