@@ -283,7 +283,11 @@ def simulate(
     else:
         check_save_times(saveat, t0, t1)
     eager = is_concrete(q0, qdot0, t0, t1, dt0, saveat)
-    taylor_cpu = isinstance(solver, Taylor) and jax.default_backend() == "cpu"
+    # (The cached eager solve on a CPU compiles with XLA's elemental emitters: a
+    # Taylor step needs them, and a Runge-Kutta solve compiles in 30-50% less time
+    # for a step 0-15% slower, repaid past a million steps; benchmarks/README.md.)
+    on_cpu = jax.default_backend() == "cpu"
+    taylor_cpu = isinstance(solver, Taylor) and on_cpu
     call = None
     if eager:
         # Keyed on what L computes (its canonical jaxpr), not on the Python function:
@@ -296,7 +300,7 @@ def simulate(
         )  # fmt: skip
     if call is not None:
         _check_start(call, q0, qdot0, t0)
-        found = _solve_cached(call, taylor_cpu)
+        found = _solve_cached(call, on_cpu)
     if call is not None and found is not None:
         sol, failed = found
     else:
@@ -629,7 +633,7 @@ _RESULT_TREE = jax.tree.structure(dfx.RESULTS.successful)
 
 @functools.cache
 def _solve_jit(elemental: bool):
-    """`_solve` compiled (with `ELEMENTAL` for a Taylor solve on a CPU)."""
+    """`_solve` compiled (with `ELEMENTAL` on a CPU)."""
     return jax.jit(
         _solve, static_argnums=0, compiler_options=ELEMENTAL if elemental else None
     )
