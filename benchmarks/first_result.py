@@ -299,7 +299,9 @@ def work_simulate(args):
         return sol.ys[0][-1]
 
     q0 = jnp.asarray(_releases(args.n))
-    f = jax.jit(jax.vmap(one))
+    # (`--elemental`: the compile option simulate's docstring suggests on a CPU.)
+    options = {"xla_cpu_use_fusion_emitters": False} if args.elemental else None
+    f = jax.jit(jax.vmap(one), compiler_options=options)
     out, times = _timed(jax, lambda: f(q0), "first", stages)
     row.update(times)
     out, times = _timed(jax, lambda: f(q0), "steady")
@@ -518,6 +520,9 @@ def main():
     p.add_argument("--solver", default="tsit5", help="eager: tsit5, dopri8, taylor")
     p.add_argument("--ts", type=int, default=0, help="eager: save at n times")
     p.add_argument("--only", choices=("all", "eager", "tape"), default="all")
+    p.add_argument(
+        "--elemental", action="store_true", help="simulate: XLA's elemental emitters"
+    )
     p.add_argument("--cache", help="tape_parts: the cache directory to read")
     args = p.parse_args()
     if args.worker:

@@ -193,7 +193,11 @@ def simulate(
     Many releases at once: `lagrax.simulate_batch` (lanes refilled as trajectories
     end); under `vmap` on a GPU, past ~10^5 releases map in pieces
     (`jax.lax.map(f, xs, batch_size=100_000)` inside your `jit`): XLA compiles one
-    very wide batch into a slower program (benchmarks/README.md). An eager call is
+    very wide batch into a slower program (benchmarks/README.md). On a CPU, give your
+    `jit` of a vmapped `simulate` XLA's elemental emitters,
+    `jax.jit(f, compiler_options={"xla_cpu_use_fusion_emitters": False})`, as an
+    eager call takes them: 256 double pendulums (Dopri8) compile 25% faster and run
+    1.4-2x faster (benchmarks/README.md). An eager call is
     compiled per body of `L`: a rebuilt `L` with new parameter values (a parameter
     scan) reuses the program, its values reaching it as arguments, and on a CPU a
     later process loads it from the library's disk cache of executables (without
