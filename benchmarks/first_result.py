@@ -353,6 +353,7 @@ def work_batch(args):
     """`simulate_batch` of `n` double pendulums (Taylor-16, t = 10): the first call,
     a steady one, and with `--rebuilt` the same body with another g."""
     jax, lagrax, row, stages = _jax_import()
+    import diffrax as dfx
     import jax.numpy as jnp
     import numpy as np
 
@@ -367,13 +368,16 @@ def work_batch(args):
             jnp.zeros_like(q0),
             0.0,
             10.0,
-            solver=lagrax.Taylor(order=16),
+            solver=solver,
             rtol=3e-11,
             atol=3e-11,
             throw=False,
         )
         return sol.ys[0][:, -1]
 
+    # (`--batch-solver tsit5` or `dopri8`: `simulate_batch`'s vmap of `simulate`.)
+    solver = dict(taylor=lambda: lagrax.Taylor(order=16), tsit5=dfx.Tsit5)
+    solver = dict(solver, dopri8=dfx.Dopri8)[args.batch_solver]()
     g = 1.0 if args.g is None else args.g
     out, times = _timed(jax, lambda: run(g), "first", stages)
     row.update(times)
@@ -522,6 +526,9 @@ def main():
     p.add_argument("--only", choices=("all", "eager", "tape"), default="all")
     p.add_argument(
         "--elemental", action="store_true", help="simulate: XLA's elemental emitters"
+    )
+    p.add_argument(
+        "--batch-solver", default="taylor", help="batch: taylor, tsit5, dopri8"
     )
     p.add_argument("--cache", help="tape_parts: the cache directory to read")
     args = p.parse_args()

@@ -119,13 +119,37 @@ def test_max_steps_per_release():
     assert np.asarray(sol.result == dfx.RESULTS.max_steps_reached)[1]
 
 
+def spring(k):
+    return lambda q, qdot, t: 0.5 * jnp.sum(qdot**2) - 0.5 * k * jnp.sum(q**2)
+
+
 def test_other_solvers_run_vmap_of_simulate():
     q0, v0 = np.array([[1.0], [0.5]]), np.zeros((2, 1))
-    sol = lagrax.simulate_batch(
-        oscillator, q0, v0, 0.0, 1.0, solver=dfx.Tsit5(), rtol=1e-10, atol=1e-10
+    run = lambda q0, t1, k=1.0: lagrax.simulate_batch(
+        spring(k), q0, v0, 0.0, t1, solver=dfx.Tsit5(), rtol=1e-10, atol=1e-10
     )
+    sol = run(q0, 1.0)
     q, _ = exact(q0, v0, 1.0)
     np.testing.assert_allclose(sol.ys[0][:, -1], q, atol=1e-8)
+    # Other releases and span, a rebuilt L with another stiffness (x'' = -4x): the
+    # program compiled for the first call, no compile.
+    compiles = []
+
+    def listener(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(event)
+
+    q1 = np.array([[0.25], [-2.0]])
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        again = jax.block_until_ready(run(q1, 0.75, k=4.0))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert compiles == []
+    np.testing.assert_allclose(again.ys[0][:, -1], q1 * np.cos(1.5), atol=1e-8)
+    # Staged into a caller's `jit`: that program compiles the solve, same numbers.
+    staged = jax.jit(lambda q: run(q, 1.0).ys[0][:, -1])(jnp.asarray(q0))
+    np.testing.assert_allclose(staged, sol.ys[0][:, -1], rtol=1e-12, atol=1e-14)
 
 
 def test_bad_shapes():

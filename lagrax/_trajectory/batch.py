@@ -41,8 +41,8 @@ from .._stepper.base import LaneField
 from .._stepper.taylor import TaylorStepper
 from .._taylor.solver import Taylor
 from .._taylor.system import System
-from .simulate import simulate
-from .term import _LagrangeVectorField
+from .simulate import elemental, simulate
+from .term import _LagrangeVectorField, BoundLagrangian
 
 
 # The most equations (orders x nodes of the system's program) a step unrolls.
@@ -372,7 +372,9 @@ def simulate_batch(
     saved states from the steps' polynomials. Any other solver, or a `SaveAt` or
     keyword the loop does not take (`t0=True`, `steps`, `dense`, `fn`, `event`,
     `adjoint`, a `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate`
-    with the same arguments. The loop is compiled per body of `L`: a rebuilt `L` with
+    with the same arguments (on a CPU compiled once for the next call with the same
+    `L`, solver and keywords, with XLA's elemental emitters). The loop is compiled
+    per body of `L`: a rebuilt `L` with
     new parameter values reuses it (they reach it as arguments), and on a CPU a later
     process loads it from the library's disk cache without tracing it. Under your own
     `jax.jit` the loop becomes part of your program: on a CPU give that `jit`
@@ -436,14 +438,32 @@ def simulate_batch(
     )
     plan = _saveat_plan(saveat, t0, t1)
     if not isinstance(solver, Taylor) or plan == "vmap" or kwargs:
-
-        def one(q, v, a, b, r, s):
-            return simulate(
-                L, q, v, a, b, force=force, solver=solver, saveat=saveat, rtol=r,
-                atol=s, max_steps=max_steps, throw=False, **kwargs,
-            )  # fmt: skip
-
-        sol = jax.vmap(one)(q0, qdot0, t0, t1, rtol, atol)
+        # (Keyed on what L computes: a rebuilt L with new parameter values reuses
+        # the program, its values as arguments.)
+        try:
+            L_c, consts = canonical_lagrangian(L, dtype, q0.shape[1])
+            bound = BoundLagrangian(L_c, tuple(consts))
+        except Exception:  # noqa: BLE001 -- `simulate` names what is wrong with `L`
+            bound = L
+        args = (bound, force, solver, saveat, max_steps, kwargs)
+        args += (q0, qdot0, t0, t1, rtol, atol)
+        sol = None
+        if devices[0].platform == "cpu":
+            # One program, kept for the next call with the same static parts (run op
+            # by op, the vmapped solve compiles its loop again at every call), with
+            # XLA's elemental emitters: the lane-batched step stays one loop.
+            try:
+                sol = elemental(_vmapped)(*args)
+            except TypeError as error:  # (an unhashable static part: op by op)
+                if "unhashable" not in str(error):
+                    raise
+            except ValueError as error:
+                # Staged into a caller's `jit` (or `grad`): a nested `jit` takes no
+                # compiler options there; the caller's program compiles the solve.
+                if "compiler_options" not in str(error):
+                    raise
+        if sol is None:
+            sol = _vmapped(*args)
         return _raise_if_failed(sol, throw)
     ts, save_t1 = plan
     L_c, consts = canonical_lagrangian(L, dtype, q0.shape[1])
@@ -561,6 +581,20 @@ def _per_release(x, name, B, dtype):
             f"`{name}` must be a scalar or of shape ({B},); got {x.shape}."
         )
     return x
+
+
+def _vmapped(
+    L, force, solver, saveat, max_steps, kwargs, q0, qdot0, t0, t1, rtol, atol
+):
+    """`jax.vmap` of `simulate` over the releases (a solver other than `Taylor`)."""
+
+    def one(q, v, a, b, r, s):
+        return simulate(
+            L, q, v, a, b, force=force, solver=solver, saveat=saveat, rtol=r,
+            atol=s, max_steps=max_steps, throw=False, **kwargs,
+        )  # fmt: skip
+
+    return jax.vmap(one)(q0, qdot0, t0, t1, rtol, atol)
 
 
 def _raise_if_failed(sol, throw):
