@@ -458,9 +458,7 @@ def simulate_batch(
                 if "unhashable" not in str(error):
                     raise
             except ValueError as error:
-                # Staged into a caller's `jit` (or `grad`): a nested `jit` takes no
-                # compiler options there; the caller's program compiles the solve.
-                if "compiler_options" not in str(error):
+                if not _staged(error):
                     raise
         if sol is None:
             sol = _vmapped(*args)
@@ -496,9 +494,7 @@ def simulate_batch(
         try:
             out = jitted(cfg, shape, *args, ts_arr, consts)
         except ValueError as error:
-            # Staged into a caller's `jit` (or `grad`): a nested `jit` takes no
-            # compiler options there, the caller's apply (the docstring says which).
-            if "compiler_options" not in str(error):
+            if not _staged(error):
                 raise
             jitted = _compiled(False, devices[:D])
             out = jitted(cfg, shape, *args, ts_arr, consts)
@@ -581,6 +577,13 @@ def _per_release(x, name, B, dtype):
             f"`{name}` must be a scalar or of shape ({B},); got {x.shape}."
         )
     return x
+
+
+def _staged(error: ValueError) -> bool:
+    """Whether `error` is JAX's refusal of compiler options on a `jit` staged into a
+    caller's `jit` (or `grad`): there the caller's program compiles the call, with
+    the caller's options (the docstring says which)."""
+    return "compiler_options" in str(error)
 
 
 def _vmapped(
