@@ -7,7 +7,7 @@ import jax
 import pytest
 
 
-# The library's disk cache of executables (`lagrax._executables`) off, unless a test
+# The library's disk cache of executables (`lagrax._cache.executables`) off, unless a test
 # turns it on: tests compile what they check, and write nothing outside their
 # temporary folders. The CLI, called in this process by some tests, keeps JAX's
 # persistent compilation cache under $XDG_CACHE_HOME: a folder of this run's own.
@@ -39,7 +39,7 @@ def without_jax_cache(monkeypatch):
     is on (or has served the process) the library writes no executables."""
     from jax.experimental.compilation_cache import compilation_cache
 
-    from lagrax import _executables
+    from lagrax._cache import executables as _executables
 
     folder = jax.config.jax_compilation_cache_dir
     jax.config.update("jax_compilation_cache_dir", None)
@@ -59,7 +59,7 @@ def executable_cache(monkeypatch, tmp_path, without_jax_cache):
     later process starts)."""
     import collections
 
-    from lagrax import _executables
+    from lagrax._cache import executables as _executables
 
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(_executables, "_PROGRAMS", collections.OrderedDict())

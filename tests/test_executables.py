@@ -1,4 +1,4 @@
-"""The library's disk cache of compiled programs (`lagrax._executables`): a program
+"""The library's disk cache of compiled programs (`lagrax._cache.executables`): a program
 compiled once is loaded by a later process (here: after emptying this process's
 table), for any parameter values; damaged entries are compiled again; the folder
 stays under its size."""
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax import _executables as executables
+from lagrax._cache import executables
 from lagrax.systems import asymmetric_well, pendulum
 
 
@@ -221,7 +221,7 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_compilation_cache_dir", sys.argv[1])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-from lagrax import _executables as executables
+from lagrax._cache import executables
 
 f = jax.jit(lambda x: jnp.where(x > 0, jnp.sin(x), jnp.cos(x)) * 2.0)
 x = jnp.linspace(-1.0, 1.0, 7)

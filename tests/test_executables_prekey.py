@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax import _executables as executables, _faithful as faithful
+from lagrax._cache import executables, faithful
 from lagrax.systems import asymmetric_well, cycloid, pendulum, rotating_hoop
 
 
@@ -283,7 +283,7 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 import diffrax as dfx
 import lagrax
-from lagrax import _executables as executables
+from lagrax._cache import executables
 from lagrax.systems import pendulum
 
 # Programs lowered by the library's cache of executables.

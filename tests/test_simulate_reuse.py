@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax import _executables as executables
+from lagrax._cache import executables
 from lagrax.systems import pendulum
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax import _executables as executables
+from lagrax._cache import executables
 from lagrax._jaxpr.canonical import canonical_lagrangian
 from lagrax._period import tier
 from lagrax._period.mechanics import AutodiffMechanics

@@ -12,7 +12,7 @@ import collections
 import jax
 import numpy as np
 
-from .. import _executables as executables
+from .._cache import executables
 from .._jaxpr.canonical import canonical_lagrangian
 from .._taylor.solver import Taylor
 from .solver import resolve_solver

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .. import _executables as executables
+from .._cache import executables
 from .._checks import (
     as_real_array,
     check_callable,

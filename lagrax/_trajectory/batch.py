@@ -34,7 +34,7 @@ from .._checks import (
     positive_scalar,
 )
 from .._custom_types import GeneralizedForce, Lagrangian
-from .._executables import cached_call
+from .._cache.executables import cached_call
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import ELEMENTAL
 from .._stepper.base import LaneField

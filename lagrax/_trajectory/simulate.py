@@ -25,7 +25,7 @@ from .._checks import (
 )
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
 from .._eom.mechanics import _accelerations, _accelerations_jit
-from .._executables import cached_call
+from .._cache.executables import cached_call
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import ELEMENTAL
 from .._taylor.solver import Taylor

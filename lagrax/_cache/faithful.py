@@ -1,5 +1,5 @@
 r"""A text that says all of a value, or none: the pre-keys of the disk cache of
-executables (`lagrax._executables`) are built from it.
+executables (`lagrax._cache.executables`) are built from it.
 
 `text(x)` writes `x` from a whitelist of kinds whose every part it writes out, so that
 two values with one text are interchangeable wherever the library uses them; any
@@ -144,7 +144,7 @@ def _array(a) -> str:
 
 
 def _write_object(x, t, out):
-    from ._jaxpr.canonical import CanonicalLagrangian
+    from .._jaxpr.canonical import CanonicalLagrangian
 
     if t is CanonicalLagrangian:
         out.append(f"L({x.n_params},")

@@ -27,7 +27,7 @@ what enters a trace, context managers included); equinox's; the `JAX_`, `XLA_`,
 module-level library function that made the jitted function and its arguments (for
 the sweep: the canonical Lagrangian's jaxpr, the kernel's `Method`, the devices);
 the compile options; the arguments' tree and abstract values (shape, dtype, weak
-type, placement, layout). Every part is written by `lagrax._faithful.text`, which
+type, placement, layout). Every part is written by `lagrax._cache.faithful.text`, which
 admits only kinds whose text says all of them and refuses any other (a function, a
 closure's `custom_jvp` rule, a user's type, an object compared by identity): then
 the call has no pre-key and finds its entry by lowering, as before, never by a
@@ -71,7 +71,7 @@ import jax
 import numpy as np
 from jax.experimental import serialize_executable
 
-from . import _faithful as faithful
+from . import faithful
 
 
 # Compiled programs of this process: by key (`call`), and by program and argument
@@ -97,7 +97,7 @@ def cache_dir() -> str | None:
 def _source_digest() -> str:
     """A digest of the library's source: an executable compiled by other code is
     never loaded."""
-    root = os.path.dirname(os.path.abspath(__file__))
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     h = hashlib.sha256()
     for folder, dirs, files in sorted(os.walk(root)):
         dirs.sort()
