@@ -80,6 +80,9 @@ from . import faithful
 _LOADED: dict = {}
 _PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 _MAX_PROGRAMS = 64
+# What the cache did in this process: entries `loaded` from disk, programs `compiled`,
+# entries `written`, programs `refused` (not written: not known to load safely).
+STATS: collections.Counter = collections.Counter()
 # The most the cache folder holds (bytes); a sweep's executable is ~2 MB.
 MAX_BYTES = 1 << 30
 
@@ -496,6 +499,7 @@ def _compile(key, lowered):
     it serializes without its object code, and that cache keeps programs for later
     processes itself."""
     compiled = lowered.compile()
+    STATS["compiled"] += 1
     jax_cache = jax.config.jax_compilation_cache_dir is not None and (
         jax.config.jax_enable_compilation_cache
     )
@@ -526,6 +530,7 @@ def _load(key, in_tree, out_tree):
         with open(path, "rb") as fh:
             payload = pickle.load(fh)
         compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        STATS["loaded"] += 1
         os.utime(path)  # (recently used: kept longest)
         return compiled
     except Exception:  # noqa: BLE001 -- a damaged or stale entry: compile again
@@ -541,6 +546,7 @@ def _store(key, compiled):
     except Exception:  # noqa: BLE001 -- a program that cannot be serialized (host
         return  # callbacks): kept in memory only
     if _write(path, pickle.dumps(payload)):
+        STATS["written"] += 1
         _evict(os.path.dirname(path))
 
 
