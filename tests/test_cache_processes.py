@@ -86,3 +86,34 @@ def test_every_kind_runs_twice(tmp_path, case):
 def test_the_case_lists_agree():
     assert set(DEFAULT) | REFUSED | UNCACHED <= set(cache_worker.CASES)
     assert len(set(cache_worker.CASES)) == len(cache_worker.CASES)
+
+
+def _cli_twice(tmp_path, *args):
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "home"))
+    env.pop("LAGRAX_CACHE_DIR")  # (the command's default folder, under the home)
+    outs = []
+    for run in ("first", "second"):
+        out = tmp_path / f"{run}.csv"
+        proc = subprocess.run(
+            [sys.executable, "-m", "lagrax", "sweep", *args, "--out", str(out)],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+        assert proc.returncode == 0, f"{run} run:\n{proc.stderr[-4000:]}"
+        outs.append(out.read_text())
+    assert outs[0] == outs[1]
+    cache = tmp_path / "home" / "lagrax" / "executables"
+    return sorted(p.name for p in cache.iterdir())
+
+
+def test_the_command_line_runs_twice_on_one_cache(tmp_path):
+    names = _cli_twice(tmp_path, "pendulum", "--count", "64", "--solver", "tsit5")
+    assert any(n.endswith(".bin") for n in names)
+
+
+@pytest.mark.slow
+def test_the_default_job_runs_twice_on_one_cache(tmp_path):
+    names = _cli_twice(tmp_path, "--count", "256")
+    assert any(n.endswith(".bin") for n in names)
