@@ -50,6 +50,7 @@ import os
 import pathlib
 import platform
 import time
+import types
 
 import jax
 
@@ -78,7 +79,11 @@ SOLVERS = {
     "Dopri5": dfx.Dopri5(),
     "Dopri8": dfx.Dopri8(),
     "Kvaerno5": dfx.Kvaerno5(),
+    "Taylor": lagrax.Taylor(),
 }
+# `lagrax.Taylor` compiled as its docstring asks on a CPU (XLA's default emitters
+# recompute parts of a large Taylor program).
+ELEMENTAL = {"xla_cpu_use_fusion_emitters": False}
 # Variational integrators: name -> (solver, stages s, most steps per unit time). Each
 # Newton iteration evaluates s stage gradients of L and a Jacobian of (s+1)n
 # columns, counted as s * (1 + (s+1)n) evaluations (1 + 2n for the midpoint rule).
@@ -123,26 +128,41 @@ def systems():
     return out
 
 
+_COMPILED = {}
+
+
 def solve(term, solver, y0, t1, *, tol=None, h=None, saveat=None, max_steps=None):
-    if h is None:
-        controller = dfx.PIDController(rtol=tol, atol=tol)
-        dt0 = None
-        max_steps = max_steps or ADAPTIVE_MAX_STEPS
-    else:
-        controller = dfx.ConstantStepSize()
-        dt0 = h
-    return dfx.diffeqsolve(
-        term,
-        solver,
-        jnp.asarray(0.0),
-        jnp.asarray(t1),
-        dt0,
-        y0,
-        saveat=dfx.SaveAt(t1=True) if saveat is None else saveat,
-        stepsize_controller=controller,
-        max_steps=max_steps or MAX_STEPS,
-        throw=False,
-    )
+    """One solve, through one `jax.jit` per term, solver and kind of call (the
+    tolerance or step an argument: a scan compiles once); `lagrax.Taylor` with the
+    compile option its docstring gives on a CPU."""
+    fixed = h is not None
+    saveat = dfx.SaveAt(t1=True) if saveat is None else saveat
+    key = (id(term), solver, fixed, saveat, max_steps)
+    if key not in _COMPILED:
+
+        def run(y0, t1, x):
+            controller = (
+                dfx.ConstantStepSize() if fixed else dfx.PIDController(rtol=x, atol=x)
+            )
+            steps = max_steps or (MAX_STEPS if fixed else ADAPTIVE_MAX_STEPS)
+            return dfx.diffeqsolve(
+                term, solver, jnp.asarray(0.0), t1, x if fixed else None, y0,
+                saveat=saveat, stepsize_controller=controller, max_steps=steps,
+                throw=False,
+            )  # fmt: skip
+
+        options = ELEMENTAL if isinstance(solver, lagrax.Taylor) else None
+        _COMPILED[key] = (term, jax.jit(run, compiler_options=options))
+    return _COMPILED[key][1](y0, jnp.asarray(t1), jnp.asarray(h if fixed else tol))
+
+
+def batch_solve(L, y0, t1, tol):
+    """`lagrax.simulate_batch` (its default solver, `lagrax.Taylor()`) on the one
+    release: its own loop, not diffrax's."""
+    return lagrax.simulate_batch(
+        L, y0[0][None], y0[1][None], 0.0, t1, rtol=tol, atol=tol,
+        max_steps=ADAPTIVE_MAX_STEPS, throw=False,
+    )  # fmt: skip
 
 
 def reference(L, y0, t1):
@@ -192,20 +212,25 @@ def counting_term(L):
     return dfx.ODETerm(vf), count
 
 
-def run_system(name, L, y0, t1, exact, tols, steps_per_unit, repeats):
+def run_system(name, L, y0, t1, exact, tols, steps_per_unit, repeats, only=None):
     n = y0[0].shape[0]
     ref = exact if exact is not None else reference(L, y0, t1)
     term = lagrax.LagrangianTerm(L)
     rows = []
+    wanted = lambda solver_name: only is None or solver_name in only
     for solver_name, solver in SOLVERS.items():
+        if not wanted(solver_name):
+            continue
+        taylor = isinstance(solver, lagrax.Taylor)
         cterm, count = counting_term(L)
         for tol in tols:
             tol_ = jnp.asarray(tol)
             sol, best, compile_s = timed(
                 lambda: solve(term, solver, y0, t1, tol=tol_), repeats
             )
-            count[0] = 0
-            jax.block_until_ready(solve(cterm, solver, y0, t1, tol=tol_))
+            if not taylor:  # (a Taylor step expands its vector field once per step)
+                count[0] = 0
+                jax.block_until_ready(solve(cterm, solver, y0, t1, tol=tol_))
             ok = bool(sol.result == dfx.RESULTS.successful)
             rows.append(
                 dict(
@@ -216,15 +241,38 @@ def run_system(name, L, y0, t1, exact, tols, steps_per_unit, repeats):
                     error=error(sol, ref) if ok else None,
                     seconds=best,
                     compile_seconds=compile_s,
-                    evaluations=count[0],
+                    evaluations=None if taylor else count[0],
                     newton_iterations=None,
                     steps=int(sol.stats["num_steps"]),
                     result=str(dfx.RESULTS[sol.result]) or "successful",
                 )
             )
             print(_fmt(rows[-1]), flush=True)
+    for tol in tols if wanted("simulate_batch") else ():
+        tol_ = jnp.asarray(tol)
+        sol, best, compile_s = timed(lambda: batch_solve(L, y0, t1, tol_), repeats)
+        ok = bool((sol.result == dfx.RESULTS.successful)[0])
+        end = types.SimpleNamespace(ys=tuple(a[0] for a in sol.ys))
+        rows.append(
+            dict(
+                system=name,
+                solver="simulate_batch",
+                tol=tol,
+                h=None,
+                error=error(end, ref) if ok else None,
+                seconds=best,
+                compile_seconds=compile_s,
+                evaluations=None,
+                newton_iterations=None,
+                steps=int(sol.stats["num_steps"][0]),
+                result="successful" if ok else "failed",
+            )
+        )
+        print(_fmt(rows[-1]), flush=True)
     saveat = dfx.SaveAt(t1=True, solver_state=True)
     for solver_name, (solver, stages, most) in VARIATIONAL.items():
+        if not wanted(solver_name):
+            continue
         for per_unit in steps_per_unit:
             if per_unit > most:
                 continue
@@ -318,7 +366,7 @@ def _fmt(row):
     err = f"{row['error']:.2e}" if row["error"] is not None else "  failed"
     return (
         f"{row['system']:16s} {row['solver']:20s} {setting:12s} err={err} "
-        f"t={row['seconds'] * 1e3:9.2f} ms evals={row['evaluations']:9d} "
+        f"t={row['seconds'] * 1e3:9.2f} ms evals={row['evaluations'] or 0:9d} "
         f"steps={row['steps']:7d} {row['result']}"
     )
 
@@ -331,6 +379,8 @@ STYLE = {
     "VariationalMidpoint": ("tab:red", "*"),
     "GaussLegendre4": ("tab:brown", "P"),
     "GaussLegendre6": ("tab:pink", "X"),
+    "Taylor": ("black", "v"),
+    "simulate_batch": ("tab:gray", "<"),
 }
 
 
@@ -348,9 +398,9 @@ def plot_system(ax_time, ax_evals, name, rows):
         ax_time.loglog(
             [r["seconds"] for r in mine], err, marker=marker, color=color, label=solver
         )
-        ax_evals.loglog(
-            [r["evaluations"] for r in mine], err, marker=marker, color=color
-        )
+        counted = [(r["evaluations"], e) for r, e in zip(mine, err) if r["evaluations"]]
+        if counted:
+            ax_evals.loglog(*zip(*counted), marker=marker, color=color)
         failed = [r for r in rows if r["system"] == name and r["solver"] == solver]
         nfail = len(failed) - len(mine)
         if nfail:
@@ -370,6 +420,8 @@ def main():
     parser.add_argument("--quick", action="store_true", help="a small, fast run")
     parser.add_argument("--repeats", type=int, default=None)
     parser.add_argument("--systems", nargs="*", default=None, help="a subset")
+    parser.add_argument("--solvers", nargs="*", default=None, help="a subset")
+    parser.add_argument("--out", default=None, help="JSON/CSV path stem (no charts)")
     args = parser.parse_args()
     if args.quick:
         tols = [1e-4, 1e-7, 1e-10]
@@ -387,7 +439,13 @@ def main():
     for name, (L, y0, t1, exact) in systems().items():
         if name not in which:
             continue
-        rows += run_system(name, L, y0, t1, exact, tols, steps_per_unit, repeats)
+        rows += run_system(
+            name, L, y0, t1, exact, tols, steps_per_unit, repeats, args.solvers
+        )
+    if args.out:
+        with open(f"{args.out}.json", "w") as f:
+            json.dump(dict(rows=rows), f, indent=1)
+        return
 
     import matplotlib
 

@@ -28,6 +28,14 @@ from .base import (
 )
 
 
+# The trajectories' step (`simulate_batch`, `Taylor` as a diffrax solver): the first
+# term dropped at rtol/TRUNCATION, where the true local error of diffrax's Dopri8 and
+# Tsit5 steps sits at the same tolerance (their controllers bound an embedded
+# lower-order estimate, tens of times the error of the solution they keep).
+# Calibrated on the error at t1 against Dopri8's (`benchmarks/accuracy.py`).
+TRUNCATION = 256.0
+
+
 def _log2(n):
     """log2 of a positive float to 0.014 (frexp and a cubic; no libm call): the
     step-length rule's j-th roots need only a few digits."""
@@ -39,21 +47,28 @@ def _log2(n):
 class TaylorStepper(AbstractStepper):
     r"""The Taylor step of order $K$ = `order`, never longer than `max_step`.
 
-    The step length is Jorba and Zou's (and heyoka.py's),
+    The step length is a fraction of the radius of convergence $\rho$ estimated from
+    the last four orders,
 
-    $$h = e^{-0.7/(K-1)}\,\varepsilon^{1/K} \min_{K-3 \le j \le K}
+    $$h = f(\varepsilon)\,\rho,\qquad \rho = \min_{K-3 \le j \le K}
     \lVert (x_j, v_j)\rVert_\infty^{-1/j},\qquad
     \varepsilon = \text{atol} + \text{rtol}\,\lVert (x_0, v_0)\rVert_\infty,$$
 
-    over the last four orders instead of two: from rest $x(s)$ is even, its odd
+    (the last four orders instead of two: from rest $x(s)$ is even, its odd
     coefficients vanish, and the last two orders would rest on one number that passes
-    through zero as the amplitude varies (a first step too long by 1.4x on some
-    amplitudes). Coefficients from `coefficients`: a subclass that computes them
-    otherwise (from a tape) keeps the rest of the step.
+    through zero as the amplitude varies, a first step too long by 1.4x on some
+    amplitudes). With `truncation` $= C$ (trajectories),
+    $f = (\varepsilon/C)^{1/(K+1)}$: the first term the step drops, extrapolated as
+    $(h/\rho)^{K+1}$, is $\varepsilon/C$.
+    With `truncation=None` (the period kernel), Jorba and Zou's (and heyoka.py's)
+    factor at a fixed order, $f = e^{-0.7/(K-1)}\,\varepsilon^{1/K}$: the last term
+    kept is about $\varepsilon/2$. Coefficients from `coefficients`: a subclass that
+    computes them otherwise (from a tape) keeps the rest of the step.
     """
 
     order: int = eqx.field(static=True)
     max_step: float = eqx.field(static=True)
+    truncation: float | None = eqx.field(static=True, default=None, kw_only=True)
 
     rejects: ClassVar[bool] = False
     # How the step's outputs leave its one loop (`fused`): see `one_fusion`.
@@ -69,9 +84,16 @@ class TaylorStepper(AbstractStepper):
         return float(np.exp(-0.7 / (self.order - 1)))
 
     def radius_fraction(self, tol):
-        r"""$h/\rho$ of a free step: the rule takes the radius of convergence $\rho$
-        times this."""
-        return self.safety * jnp.exp2(jnp.log2(tol) / self.order)
+        r"""$h/\rho$ of a free step, $f(\varepsilon)$: the rule takes the radius of
+        convergence $\rho$ times this."""
+        return self._fraction(tol, jnp.zeros_like(tol), jnp.exp2)
+
+    def _fraction(self, tol, lg, exp2):
+        r"""$f(\varepsilon)\,2^{-\text{lg}}$, by one `exp2`."""
+        K = self.order
+        if self.truncation is None:
+            return self.safety * exp2(jnp.log2(tol) / K - lg)
+        return exp2((jnp.log2(tol) - float(np.log2(self.truncation))) / (K + 1) - lg)
 
     def exp2(self, x):
         """$2^x$ for the step length (a subclass may take a cheaper one)."""
@@ -98,7 +120,7 @@ class TaylorStepper(AbstractStepper):
             lj = jnp.where(n > 0, _log2(n), -jnp.inf) / j
             lg = lj if lg is None else jnp.maximum(lg, lj)
         # (Each exp2 with one reader: see `fused` below.)
-        h_jz = self.safety * self.exp2(jnp.log2(tol) / K - lg)
+        h_jz = self._fraction(tol, lg, self.exp2)
         h = jnp.where(free, jnp.minimum(h_jz, jnp.minimum(cap, self.max_step)), h)
         h = jax.lax.stop_gradient(h)
         x1, v1 = horner(xs, h), horner(vs, h)

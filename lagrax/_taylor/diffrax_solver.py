@@ -7,17 +7,18 @@ solution over the whole step, so it is also the step's dense output: `SaveAt(ts=
 `Solution.evaluate` and the root finding of `diffrax.Event` read it, not a
 lower-order interpolant.
 
-The error estimate is the step-length rule of Jorba and Zou (as heyoka.py and the
-period kernel use it) written as an error: per entry $i$ of $y$,
+The error estimate is the trajectories' step-length rule (`simulate_batch`'s) written
+as an error: per entry $i$ of $y$,
 
-$$e_i(h) = \Bigl(|h| \max_{K-3 \le j \le K} |y_{j,i}|^{1/j}\Bigr)^{K},$$
+$$e_i(h) = C\,\Bigl(|h| \max_{K-3 \le j \le K} |y_{j,i}|^{1/j}\Bigr)^{K+1},$$
 
-the last orders' estimate of $(h/\rho)^K$ with $\rho$ the radius of convergence, of
-error order $K$. A diffrax controller that keeps $e_i \le \text{atol} + \text{rtol}
-|y_i|$ then proposes, after each step, the step the rule would choose at its start
-(scaled by its `safety`): the coefficients are computed before the step length is
-known, as diffrax's interface asks, and a step is rejected only where the rule's step
-shrinks by more than `1 - safety` from one step to the next.
+$C$ times the first term dropped, extrapolated from the last orders as
+$(h/\rho_i)^{K+1}$ with $\rho_i$ the radius of convergence, of error order $K + 1$.
+A diffrax controller that keeps $e_i \le \text{atol} + \text{rtol} |y_i|$ then
+proposes, after each step, the step the rule would choose at its start (scaled by
+its `safety`): the coefficients are computed before the step length is known, as
+diffrax's interface asks, and a step is rejected only where the rule's step shrinks
+by more than `1 - safety` from one step to the next.
 """
 
 from collections.abc import Callable
@@ -28,9 +29,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from diffrax._term import WrapTerm  # (how diffeqsolve integrates backwards in time)
 
 from .._jaxpr.fusion import one_fusion
+from .._stepper.taylor import TRUNCATION
 
 
 class TaylorInterpolation(dfx.AbstractLocalInterpolation):
@@ -71,13 +74,14 @@ def _ode_term(terms):
 
 
 def _error(cs, h, K):
-    r"""$e(h) = (|h| \max_j |c_j|^{1/j})^K$ over the last four orders, in base 2."""
+    r"""$e(h) = C (|h| \max_j |c_j|^{1/j})^{K+1}$ over the last four orders, in
+    base 2."""
     lg = None
     for j in range(max(1, K - 3), K + 1):
         a = jnp.abs(cs[j])
         lj = jnp.where(a > 0, jnp.log2(jnp.where(a > 0, a, 1.0)), -jnp.inf) / j
         lg = lj if lg is None else jnp.maximum(lg, lj)
-    return jnp.exp2(K * (jnp.log2(jnp.abs(h)) + lg))
+    return jnp.exp2((K + 1) * (jnp.log2(jnp.abs(h)) + lg) + float(np.log2(TRUNCATION)))
 
 
 class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
@@ -91,7 +95,7 @@ class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
     )
 
     def error_order(self, terms):
-        return self.order
+        return self.order + 1
 
     def strong_order(self, terms):
         return None

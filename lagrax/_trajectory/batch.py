@@ -38,7 +38,7 @@ from .._cache.executables import cached_call
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import ELEMENTAL
 from .._stepper.base import LaneField
-from .._stepper.taylor import TaylorStepper
+from .._stepper.taylor import TaylorStepper, TRUNCATION
 from .._taylor.solver import Taylor
 from .._taylor.system import System
 from .simulate import elemental, simulate
@@ -162,7 +162,9 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
 
     zero = jnp.zeros((), dtype)
     system = System(f, zero, [q0[0], v0[0]], [zero + 1])
-    stepper = SystemTaylorStepper(order=cfg.order, max_step=np.inf, system=system)
+    stepper = SystemTaylorStepper(
+        order=cfg.order, max_step=np.inf, truncation=TRUNCATION, system=system
+    )
     sign = jnp.where(t1 >= t0, 1.0, -1.0).astype(dtype)
     # One row per release: its state in its own time (q, sigma qdot), its start
     # time sigma t0 as a sum of two floats (S0 + S0_LO, the low part 0 at release),
@@ -366,10 +368,11 @@ def simulate_batch(
     The batched form of `lagrax.simulate`: release $b$ starts at
     $(q_0[b], \dot q_0[b])$ at $t_0[b]$ and ends at $t_1[b]$ (scalars apply to every
     release). With `solver=lagrax.Taylor(...)` (the default, order 20) the batch runs
-    in one compiled loop per device (see the module docstring): step lengths by the
-    rule of Jorba and Zou from the last coefficients with
-    $\varepsilon = \text{atol} + \text{rtol}\,\lVert y\rVert_\infty$ per release,
-    saved states from the steps' polynomials. Any other solver, or a `SaveAt` or
+    in one compiled loop per device (see the module docstring): step lengths by
+    `lagrax.Taylor`'s rule from the last coefficients with
+    $\varepsilon = \text{atol} + \text{rtol}\,\lVert y\rVert_\infty$ per release
+    (at the same tolerances as accurate as `diffrax.Dopri8`, or more), saved states
+    from the steps' polynomials. Any other solver, or a `SaveAt` or
     keyword the loop does not take (`t0=True`, `steps`, `dense`, `fn`, `event`,
     `adjoint`, a `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate`
     with the same arguments (on a CPU compiled once for the next call with the same
