@@ -16,6 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._compat import accepted_options
+
 
 # XLA's CPU fusion emitters (its default) cut a large fused Taylor step into
 # functions at values with several readers and recompute them per caller; its
@@ -24,6 +26,12 @@ import numpy as np
 # sweep's forward-mode derivative). A compile option of lagrax's own programs, not a
 # global flag: inside a caller's `jit`, the caller's options apply.
 ELEMENTAL = {"xla_cpu_use_fusion_emitters": False}
+
+
+def elemental_options() -> dict:
+    """`ELEMENTAL` where the installed XLA takes it, else `{}` (XLA's defaults: the
+    same results, slower)."""
+    return accepted_options(ELEMENTAL)
 
 
 _STATE = threading.local()
