@@ -146,20 +146,44 @@ def test_a_program_with_save_times_or_dt0_is_kept_in_this_process(cache, how):
     # (diffrax checks save times and dt0 by a callback in its program: such a
     # program cannot be written to disk, so a later process compiles it again.)
     folder, loads, new_process, lowerings = cache
-    first = lagrax.simulate(pendulum.lagrangian(g=1.0), Q0, V0, 0.0, 2.0, **TOL, **how)
+    run = lambda: lagrax.simulate(pendulum.lagrangian(), Q0, V0, 0.0, 2.0, **TOL, **how)
+    first = run()
     assert loads == [False, False] and len(list(folder.glob("p*.bin"))) == 1
-    rebuilt = lagrax.simulate(
-        pendulum.lagrangian(g=1.0), Q0, V0, 0.0, 2.0, **TOL, **how
-    )
+    rebuilt = run()
     assert len(loads) == 2  # (this process's programs: nothing looked for on disk)
     new_process()
-    again = lagrax.simulate(pendulum.lagrangian(g=1.0), Q0, V0, 0.0, 2.0, **TOL, **how)
+    again = run()
     assert loads[2:] == [True, False]  # (the start's program loaded; the solve's not)
     for sol in (rebuilt, again):
         np.testing.assert_array_equal(sol.ys[0], first.ys[0])
         np.testing.assert_array_equal(sol.ts, first.ts)
     if "saveat" in how:
         np.testing.assert_array_equal(again.ts, TS * 2.0)
+
+
+@pytest.mark.parametrize("t1", [2.0, -2.0], ids=["forward", "backward"])
+def test_a_fixed_step_solve_is_loaded_by_a_later_process(cache, t1):
+    # (Its step goes to diffrax in the controller, which diffrax does not check by a
+    # callback: the program is written to disk.)
+    folder, loads, new_process, lowerings = cache
+    dt0 = 0.1 * np.sign(t1)
+    run = lambda g: lagrax.simulate(
+        pendulum.lagrangian(g=g), Q0, V0, 0.0, t1, solver=dfx.Euler(), dt0=dt0
+    )
+    first = run(1.0)
+    assert loads == [False, False] and len(list(folder.glob("p*.bin"))) == 2
+    new_process()
+    lowerings.clear()
+    again = run(1.0)
+    assert loads[2:] == [True, True] and lowerings == []
+    np.testing.assert_array_equal(again.ys[0], first.ys[0])
+    # The steps diffrax takes with `ConstantStepSize()` and this `dt0`, bit for bit.
+    plain = dfx.diffeqsolve(
+        dfx.ODETerm(lagrax.vector_field(pendulum.lagrangian(g=1.0))), dfx.Euler(),
+        0.0, t1, dt0, (Q0, V0),
+    )  # fmt: skip
+    np.testing.assert_array_equal(first.ys[0], plain.ys[0])
+    assert first.stats["num_steps"] == plain.stats["num_steps"] == 20
 
 
 def test_a_failed_solve_loaded_from_disk_still_raises(cache):

@@ -329,8 +329,9 @@ def _looped(devices):
 
 
 def _saveat_plan(saveat, t0, t1):
-    """`(ts, save_t1)` for a `SaveAt` the loop supports (`t1`, `ts`, `t0`), else
-    None (then `vmap(simulate)` does it)."""
+    """`(ts, save_t1)` for a `SaveAt` the loop supports (states at `ts`, at `t1`, or
+    both), else `"vmap"` (then `jax.vmap` of `simulate` runs it: `t0=True`, `steps`,
+    `dense`, a `fn`, several `SubSaveAt`s)."""
     if saveat is None:
         return None, True
     sub = saveat.subs

@@ -1,4 +1,6 @@
-"""The one place that talks to diffrax: vector fields and `simulate`."""
+"""`simulate`: Lagrange's equations through `diffrax.diffeqsolve`, an eager call
+compiled once per body of `L` (and kept by the library's disk cache); and
+`vector_field`, for a diffrax term of your own."""
 
 import dataclasses
 import functools
@@ -200,23 +202,25 @@ def simulate(
 ) -> dfx.Solution:
     r"""Integrates Lagrange's equations from $(q_0, \dot q_0)$ at $t_0$ to $t_1$.
 
-    Solves $\frac{d}{dt}(q, \dot q) = (\dot q, \ddot q)$ with $\ddot q$ from
-    `lagrax.accelerations` using `diffrax.diffeqsolve`. Works under `jit` and `vmap`
+    Solves $\frac{d}{dt}(q, \dot q) = (\dot q, \ddot q)$, with $\ddot q$ from
+    `lagrax.accelerations`, by `diffrax.diffeqsolve`. Works under `jit` and `vmap`
     (over `q0`, `qdot0`, times, tolerances); times and tolerances are arrays, so
     changing them does not recompile. $t_1 < t_0$ integrates backwards in time.
-    Many releases at once: `lagrax.simulate_batch` (lanes refilled as trajectories
-    end); under `vmap` on a GPU, past ~10^5 releases map in pieces
-    (`jax.lax.map(f, xs, batch_size=100_000)` inside your `jit`): XLA compiles one
-    very wide batch into a slower program (benchmarks/README.md). On a CPU, give your
-    `jit` of a vmapped `simulate` XLA's elemental emitters,
-    `jax.jit(f, compiler_options={"xla_cpu_use_fusion_emitters": False})`, as an
-    eager call takes them: 256 double pendulums (Dopri8) compile 25% faster and run
-    1.4-2x faster (benchmarks/README.md). An eager call is
-    compiled per body of `L`: a rebuilt `L` with new parameter values (a parameter
-    scan) reuses the program, its values reaching it as arguments, and on a CPU a
-    later process loads it from the library's disk cache of executables (without
-    tracing it where the call holds no function of yours besides `L`, such as a
-    `force` or an event's condition).
+
+    An eager call is compiled once per body of `L`: a rebuilt `L` with new
+    parameter values reuses the program (its values reach it as arguments), and on
+    a CPU a later process loads it from the library's disk cache. Not a call with
+    `SaveAt(ts=...)`, a `dt0` and an adaptive solver, or a progress meter: each
+    puts a callback to Python in the program (diffrax checks save times and `dt0`
+    that way), which ties it to its process.
+
+    Many releases at once: `lagrax.simulate_batch`, or `jax.vmap` of `simulate`
+    inside your `jit`. On a CPU, give that `jit` XLA's elemental emitters,
+    `compiler_options={"xla_cpu_use_fusion_emitters": False}`, as eager calls
+    take them (where the installed XLA knows the option): they compile and run
+    the batched solve faster. On a GPU, map a very wide batch in pieces
+    (`jax.lax.map(f, xs, batch_size=100_000)`): XLA compiles one very wide batch
+    into a slower program. Figures: benchmarks/README.md.
 
     **Arguments:**
 
@@ -408,6 +412,32 @@ def _join(static, arrays):
     )
 
 
+class _ConstantStep(dfx.AbstractStepSizeController):
+    """`diffrax.ConstantStepSize` holding its step `dt0` itself, for `diffeqsolve`
+    called with `dt0=None`: given an array `dt0`, diffrax checks its sign by a
+    callback to Python, which keeps a program off the disk cache (`simulate` checks
+    it on the host). The steps are `ConstantStepSize`'s, with the `dt0` diffrax
+    would give it (in its time dtype, times the direction of time)."""
+
+    dt0: object
+
+    def wrap(self, direction):
+        return _ConstantStep(self.dt0 * direction)
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        dt0 = jnp.asarray(self.dt0, jnp.result_type(t0))
+        return dfx.ConstantStepSize().init(
+            terms, t0, t1, y0, dt0, args, func, error_order
+        )
+
+    def adapt_step_size(self, *args, **kwargs):
+        return dfx.ConstantStepSize().adapt_step_size(*args, **kwargs)
+
+
+# Adjoints that use `dt0` only through the controller (BacksolveAdjoint reads it).
+_DT0_FREE_ADJOINTS = (dfx.RecursiveCheckpointAdjoint, dfx.DirectAdjoint)
+
+
 class _DefaultController(eqx.Module):
     """`default_controller`, built inside the compiled program (a `PIDController`
     holds its norm, a function, which has no text for the disk cache's pre-key)."""
@@ -499,6 +529,13 @@ def _canonical_call(
             controller = _DefaultController(rtol, atol)
         else:
             controller = dfx.ConstantStepSize()
+    if (
+        dt0 is not None
+        and type(controller) is dfx.ConstantStepSize
+        and event is None  # (an event's condition is given `dt0`)
+        and type(adjoint) in _DT0_FREE_ADJOINTS
+    ):
+        controller, dt0 = _ConstantStep(dt0), None
     return _Call(
         L=L_c, consts=tuple(consts), force=force, solver=solver, t0=t0, t1=t1,
         dt0=dt0, y0=y0, saveat=_saveat_spec(saveat), controller=controller,
@@ -517,8 +554,9 @@ def _solve(static, arrays):
 
     diffrax checks save times and `dt0` inside its program, by a callback to Python
     where they are arrays; a program with a callback cannot be written to disk, so
-    such a call is compiled once per process (`simulate` checks them on the host
-    first, for an error that names the argument)."""
+    a call with save times, or with a `dt0` that its controller cannot hold
+    (`_ConstantStep`), is compiled once per process (`simulate` checks them on the
+    host first, for an error that names the argument)."""
     return _solve_call(_join(static, arrays))
 
 
