@@ -306,8 +306,8 @@ def simulate(
         check_save_times(saveat, t0, t1)
     eager = is_concrete(q0, qdot0, t0, t1, dt0, saveat)
     # (The cached eager solve on a CPU compiles with XLA's elemental emitters: a
-    # Taylor step needs them, and a Runge-Kutta solve compiles in 30-50% less time
-    # for a step 0-15% slower, repaid past a million steps; benchmarks/README.md.)
+    # Taylor step needs them, and a Runge-Kutta solve compiles in less time for a
+    # step barely slower, repaid only by very long runs; benchmarks/README.md.)
     on_cpu = jax.default_backend() == "cpu"
     taylor_cpu = isinstance(solver, Taylor) and on_cpu
     call = None
