@@ -2,6 +2,8 @@
 compiled once per body of `L` (and kept by the library's disk cache); and
 `vector_field`, for a diffrax term of your own."""
 
+from __future__ import annotations
+
 import dataclasses
 import functools
 from collections.abc import Callable
