@@ -157,7 +157,8 @@ def main(out, names):
         result = jax.block_until_ready(cases[name]())
         seconds = time.perf_counter() - start
         for k, v in result.items():
-            arrays[f"{name}/{k}"] = np.asarray(v)
+            if v is not None:  # (a sweep without its estimate: None)
+                arrays[f"{name}/{k}"] = np.asarray(v)
         stats = {k: v - before.get(k, 0) for k, v in executables.STATS.items()}
         record[name] = {"seconds": seconds, **stats}
     np.savez(out, **arrays)

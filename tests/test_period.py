@@ -8,6 +8,8 @@ from scipy.optimize import brentq
 import lagrax
 from lagrax.systems import cycloid, pendulum
 
+from .helpers import counting_compiles
+
 
 # One Lagrangian object per system, shared by all tests: the compiled sweep is cached
 # per (L, solver, method, chunk_size) and shapes, so sharing keeps the suite's compile
@@ -226,24 +228,15 @@ def test_chunk_size_and_order_independence():
 
 
 def test_no_recompilation_when_amplitudes_or_tolerances_change():
-    compiles = []
-
-    def listener(event, duration, **kwargs):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(event)
-
     a = jnp.linspace(0.2, 2.0, N)
     b = jax.block_until_ready(a * 1.1)  # outside the window: `*` compiles too
     lagrax.sweep_periods(PENDULUM, a, method="quarter", rtol=1e-10, atol=1e-10)
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
+    with counting_compiles() as compiles:
         res = lagrax.sweep_periods(
             PENDULUM, b, method="quarter", rtol=1e-11, atol=1e-12
         )
         jax.block_until_ready(res)
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    assert compiles == []
+        assert compiles() == 0
     np.testing.assert_allclose(res.periods, pendulum.pendulum_period(b), rtol=1e-9)
 
 

@@ -244,9 +244,9 @@ def accelerations(
     """
     q, qdot, t = _prepare(L, q, qdot, t, force)
     if not is_concrete(q, qdot, t):
-        # Traced (a user's vector field): the same program `vector_field` runs. A
-        # nested `jit` call here made a Tsit5 solve of the particle-style double
-        # pendulum ~1.9x slower (XLA compiled the call apart from its caller).
+        # Traced (a user's vector field): the same program `vector_field` runs,
+        # inline: XLA compiles a nested `jit` call apart from its caller, which
+        # slows the caller's solve (benchmarks/README.md).
         return _accelerations(L, q, qdot, t, force)[0]
     qddot, (M, ok) = _accelerations_jit(L, q, qdot, t, force)
     check_solvable(qddot, M, ok, q, qdot, t)

@@ -35,6 +35,8 @@ import jax
 import numpy as np
 from jax.extend import core as jex_core
 
+from .._compat import top_level
+
 
 __all__ = ["canonical_lagrangian"]
 
@@ -116,12 +118,9 @@ def canonical_lagrangian(
     constants, which are `consts` (module docstring). The float array fields of a
     pytree `L` (an `eqx.Module`) come first in `consts`."""
     dtype = np.dtype(dtype)
-    # The one private JAX read in the library: whether any transformation is active
-    # (a memoized `consts` could otherwise hold a tracer of an enclosing trace, which
-    # `L`'s closure may capture invisibly). JAX has no public query; where it is gone
-    # the memo is skipped and `L` is traced per call, which is only slower.
-    clean = getattr(jax._src.core, "trace_state_clean", None)
-    clean = clean is not None and clean()
+    # Memoized outside any transformation only: under one, `L`'s closure may hold a
+    # tracer of the enclosing trace invisibly, which a memoized `consts` would miss.
+    clean = top_level()
     if clean:
         try:
             known = _BY_OBJECT.get(L)
