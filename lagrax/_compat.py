@@ -17,7 +17,7 @@ from jax.extend import core as jex_core
 # ------------------------------------------------------------------ jaxlib's LAPACK
 
 # jaxlib releases on which `prepare_lapack` was checked to set up the kernels (a
-# loaded executable that calls them ran in a fresh process: tests/test_cache_processes.py).
+# loaded executable that calls them ran in a fresh process: tests/test_compat.py).
 _LAPACK_CHECKED = ("0.10.",)
 
 

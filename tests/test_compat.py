@@ -86,9 +86,9 @@ def test_a_nested_jits_unspecified_sharding_is_recognized():
     (eqn,) = closed.jaxpr.eqns
     shardings = eqn.params["in_shardings"] + eqn.params["out_shardings"]
     assert shardings and all(_compat.is_unspecified_sharding(s) for s in shardings)
-    assert not _compat.is_unspecified_sharding(jax.sharding.SingleDeviceSharding(
-        jax.devices()[0]
-    ))
+    assert not _compat.is_unspecified_sharding(
+        jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    )
 
 
 _HITS = """

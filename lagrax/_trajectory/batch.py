@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._cache.executables import cached_call
 from .._checks import (
     as_real_array,
     check_callable,
@@ -34,7 +35,6 @@ from .._checks import (
     positive_scalar,
 )
 from .._custom_types import GeneralizedForce, Lagrangian
-from .._cache.executables import cached_call
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import elemental_options
 from .._stepper.base import LaneField
