@@ -230,7 +230,8 @@ def simulate(
     - `q0`, `qdot0`: initial coordinates and velocities, 1-D float arrays of length n.
     - `t0`, `t1`: start and end times.
     - `force`: optional generalized force `force(q, qdot, t) -> Q`.
-    - `solver`: any diffrax solver (default `Tsit5()`).
+    - `solver`: any diffrax solver (default `Tsit5()`); `lagrax.Taylor(fallback=...)`
+        steps with its fallback where L has a primitive without a Taylor recurrence.
     - `saveat`: a `diffrax.SaveAt` (default: the state at `t1` only).
     - `rtol`, `atol`: tolerances of the default PID step-size controller.
     - `dt0`: initial step (default: chosen by diffrax); required for fixed-step solvers.
@@ -265,6 +266,20 @@ def simulate(
     sol = lagrax.simulate(L, jnp.array([1.0]), jnp.array([0.0]), 0.0, 10.0)
     ```
     """
+    if isinstance(solver, Taylor) and solver.fallback is not None:
+        # Where L's accelerations have a primitive without a Taylor recurrence,
+        # tracing the Taylor solve raises `NotImplementedError`: the caller allowed
+        # the fallback to step instead.
+        kwargs = dict(
+            force=force, saveat=saveat, rtol=rtol, atol=atol, dt0=dt0,
+            max_steps=max_steps, throw=throw, stepsize_controller=stepsize_controller,
+            event=event, adjoint=adjoint, progress_meter=progress_meter,
+        )  # fmt: skip
+        try:
+            taylor = dataclasses.replace(solver, fallback=None)
+            return simulate(L, q0, qdot0, t0, t1, solver=taylor, **kwargs)
+        except NotImplementedError:
+            return simulate(L, q0, qdot0, t0, t1, solver=solver.fallback, **kwargs)
     q0, qdot0, t0 = prepare(L, q0, qdot0, t0, force, names=("q0", "qdot0", "t0"))
     dtype = q0.dtype
     t1 = as_time(t1, "t1", dtype)
