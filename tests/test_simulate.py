@@ -209,5 +209,7 @@ def test_taylor_steps_with_its_fallback_where_it_has_no_recurrence():
     want = lagrax.simulate(L, q0, v0, 0.0, 2.0, solver=dfx.Dopri8(), **kw).ys[0]
     got = lagrax.simulate(L, q0, v0, 0.0, 2.0, solver=taylor, **kw).ys[0]
     np.testing.assert_array_equal(got, want)
-    f = jax.jit(lambda q: lagrax.simulate(L, q, v0, 0.0, 2.0, solver=taylor, **kw).ys[0])
+    f = jax.jit(
+        lambda q: lagrax.simulate(L, q, v0, 0.0, 2.0, solver=taylor, **kw).ys[0]
+    )
     np.testing.assert_allclose(f(q0), want, rtol=1e-14)
