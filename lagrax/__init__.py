@@ -18,7 +18,7 @@ and integrates them, one state or many at once.
     at once, a `SweepResult`), the solver `Taylor`, the oracle `quadrature_period`
     (a `QuadratureResult`).
 - Failure statuses: `status_message`, `status_code`, `status_result`,
-    `STATUS_CODES`, `RESULTS`, `quadrature_status_message`.
+    `STATUS_CODES`, `RESULTS`.
 - `lagrax.systems`: ready-made Lagrangians with their exact references.
 
 lagrax never changes JAX's configuration: for float64, where accuracy is claimed, call
@@ -46,7 +46,6 @@ from ._eom.reparametrize import reparametrize as reparametrize
 from ._period.period import period as period
 from ._period.quadrature import (
     quadrature_period as quadrature_period,
-    quadrature_status_message as quadrature_status_message,
     QuadratureResult as QuadratureResult,
 )
 from ._period.sweep import sweep_periods as sweep_periods, SweepResult as SweepResult

@@ -20,7 +20,7 @@ def run(capsys, *argv):
 
 
 def exact_pendulum(amplitude, g=1.0):
-    return np.asarray(pendulum.pendulum_period(amplitude, 1.0, g))
+    return np.asarray(pendulum.period(amplitude, r=1.0, g=g))
 
 
 USER_MODULE = textwrap.dedent(
