@@ -5,7 +5,7 @@ get an answer at least as good. This script integrates batches of releases with 
 solver at tol = 1e-8 … 1e-14 and prints, per system, solver and tolerance, the error
 reached (the largest and the median over the releases of the max-norm error of
 $(q, \dot q)$ at $t_1$), its ratio to Dopri8's at the same tol, the steps per release
-and the wall time of the compiled call (best of `--repeats`).
+(of which rejected) and the wall time of the compiled call (best of `--repeats`).
 
 Systems (float64, released at $t = 0$):
 
@@ -200,7 +200,8 @@ def lagrax_methods(system, n):
             )  # fmt: skip
             ok = sol.result == dfx.RESULTS.successful
             y = jnp.concatenate([sol.ys[0][-1], sol.ys[1][-1]])
-            return jnp.where(ok, y, jnp.nan), sol.stats["num_steps"]
+            counts = (sol.stats["num_steps"], sol.stats["num_rejected_steps"])
+            return jnp.where(ok, y, jnp.nan), counts
 
         cache = {}
 
@@ -221,7 +222,7 @@ def lagrax_methods(system, n):
                 atol=tol, max_steps=1 << 17, throw=False,
             )  # fmt: skip
             ys = jnp.concatenate([sol.ys[0][:, -1], sol.ys[1][:, -1]], axis=1)
-            return ys, sol.stats["num_steps"]
+            return ys, (sol.stats["num_steps"], sol.stats["num_rejected_steps"])
 
         return run
 
@@ -261,7 +262,7 @@ def heyoka_method(system, n):
             ta.propagate_until(t1)
             out[start : start + simd] = ta.state.T
             steps[start : start + simd] = [r[3] for r in ta.propagate_res]
-        return out[:B], steps[:B]
+        return out[:B], (steps[:B], np.zeros(B))
 
     return run
 
@@ -306,10 +307,11 @@ def run_system(system, tols, quick, repeats, cache, methods=None):
                     compile_s = time.perf_counter() - start
                 (ys, steps), seconds = _best(lambda: run(L, *args, tol_), repeats)
             worst, median = errors(ys, ref)
+            steps, rejected = (float(np.nanmean(np.asarray(c))) for c in steps)
             rows.append(
                 dict(
                     system=system, method=name, tol=tol, max_error=worst,
-                    median_error=median, steps=float(np.nanmean(np.asarray(steps))),
+                    median_error=median, steps=steps, rejected=rejected,
                     seconds=seconds, compile_seconds=compile_s,
                 )
             )  # fmt: skip
@@ -325,7 +327,8 @@ def _fmt(r):
     return (
         f"{r['system']:15s} {r['method']:26s} tol={r['tol']:.0e} "
         f"max={r['max_error']:.2e} median={r['median_error']:.2e} "
-        f"vs Dopri8 {vs}  steps={r['steps']:8.1f} t={r['seconds'] * 1e3:9.2f} ms"
+        f"vs Dopri8 {vs}  steps={r['steps']:8.1f} (rejected {r['rejected']:6.1f}) "
+        f"t={r['seconds'] * 1e3:9.2f} ms"
     )
 
 

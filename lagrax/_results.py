@@ -15,7 +15,7 @@ That mapping is fixed; new members only ever go at the end.
 | 3 | `singular_mass` | mass matrix singular or indefinite at release or on the path |
 | 4 | `root_find_failed` | the turning point could not be located |
 | 5 | `energy_drift` | energy not conserved to `energy_tol`: the trajectory is garbage |
-| 6 | `solver_failed` | other ODE solver failure (collapsed step size, non-finite state) |
+| 6 | `solver_failed` | other ODE solver failure (collapsed step size, non-finite state, a Taylor step across a switch of the acceleration) |
 | 7 | `nonfinite_input` | `q0` is NaN or infinite |
 | 8 | `unresolved` | (quadrature) too close to an unstable equilibrium for this precision |
 | 9 | `not_natural` | (quadrature) `L` is not $\frac12 m(q)\dot q^2 - V(q)$ |
@@ -74,7 +74,10 @@ class RESULTS(eqx.Enumeration):
         "the ODE solver failed (step size collapsed or non-finite state) away from "
         "any detectable singularity of the mass matrix (in a sweep: or a sine or "
         "cosine in the equations took an argument beyond 8.2e5, which the kernel's "
-        "vectorized sine does not cover)"
+        "vectorized sine does not cover; or, with lagrax.Taylor, the acceleration is "
+        "not smooth on the path: a branch of jnp.where, abs, max, ... switched inside "
+        "a step, whose polynomial continues the old branch: step with a Runge-Kutta "
+        "solver such as diffrax.Dopri8())"
     )
     nonfinite_input = "the release point q0 is not finite"
     unresolved = (

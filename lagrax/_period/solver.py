@@ -5,6 +5,7 @@ import weakref
 import jax
 import jax.numpy as jnp
 
+from .._jaxpr.switches import switches
 from .._stepper.base import AbstractStepper
 from .._stepper.runge_kutta import RungeKuttaStepper
 from .._stepper.taylor import TaylorStepper
@@ -27,9 +28,9 @@ _TAYLOR_SUPPORT = weakref.WeakKeyDictionary()
 
 def resolve_solver(solver, L, dtype):
     """The solver the kernel steps with: `Taylor(fallback=...)` is a plain `Taylor`
-    where every primitive of L's acceleration has a recurrence and its program can be
-    unrolled, its fallback elsewhere (decided from the jaxpr, once per function,
-    dtype and solver; nothing is evaluated)."""
+    where every primitive of L's acceleration has a recurrence, its program can be
+    unrolled and L has no switch of branch, its fallback elsewhere (decided from the
+    jaxpr, once per function, dtype and solver; nothing is evaluated)."""
     if not (isinstance(solver, Taylor) and solver.fallback is not None):
         return solver
     try:
@@ -48,5 +49,9 @@ def resolve_solver(solver, L, dtype):
             supported = plain.unrolls(accel, dtype, scalar, scalar, scalar)
         except NotImplementedError:
             supported = False
+        # Where L switches branch with the state or time, a Taylor step across a
+        # switch fails its lane (see `Taylor`); the fallback steps through it.
+        one = jax.ShapeDtypeStruct((1,), dtype)
+        supported = supported and not switches(L, (one, one, scalar))
         known[key] = plain if supported else solver.fallback
     return known[key]

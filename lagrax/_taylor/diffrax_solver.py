@@ -33,7 +33,9 @@ import numpy as np
 
 from .._compat import unwrap_time
 from .._jaxpr.fusion import one_fusion
+from .._jaxpr.switches import switches
 from .._stepper.taylor import TRUNCATION
+from .._trajectory.term import LagrangianTerm
 
 
 class TaylorInterpolation(dfx.AbstractLocalInterpolation):
@@ -80,6 +82,33 @@ def _error(cs, h, K):
         lj = jnp.where(a > 0, jnp.log2(jnp.where(a > 0, a, 1.0)), -jnp.inf) / j
         lg = lj if lg is None else jnp.maximum(lg, lj)
     return jnp.exp2((K + 1) * (jnp.log2(jnp.abs(h)) + lg) + float(np.log2(TRUNCATION)))
+
+
+def _switches(terms, t0, y0, args) -> bool:
+    """Whether the vector field switches branch with the state or time (see
+    `lagrax._jaxpr.switches`): for a `lagrax.LagrangianTerm`, whether `L` or its
+    force does (the mechanics around them only guards its solve)."""
+    inner, _ = unwrap_time(terms)
+    if isinstance(inner, LagrangianTerm) and isinstance(y0, tuple) and len(y0) == 2:
+        state = (y0[0], y0[1], t0)
+        if switches(inner.L, state):
+            return True
+        return inner.force is not None and switches(inner.force, state)
+    return switches(lambda t, y: inner.vf(t, y, args), (t0, y0))
+
+
+def _defect(cs, f1, h, K):
+    r"""$|h|\,|f(t_1, y_1) - p'(h)| / (K + 1)$: the vector field where the step
+    ends against the polynomial's derivative there. For an analytic vector field,
+    about the first term the step drops (far below `_error`'s $C$ times it); where a
+    branch of it (`jnp.where`, `abs`, `max`, ...) switches inside the step, the
+    polynomial continues the old branch and this is large: the controller rejects the
+    step and shrinks the next, as a Runge–Kutta pair's estimate makes it do."""
+    h = jax.lax.stop_gradient(h)
+    dp = cs[K] * K
+    for k in range(K - 1, 0, -1):
+        dp = dp * h + cs[k] * k
+    return jnp.abs(h) * jnp.abs(f1 - dp) / (K + 1)
 
 
 class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
@@ -139,10 +168,24 @@ class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
             [lane(p) for p in (unit, *arg_leaves)],
         )
         h = jnp.asarray(t1 - t0, t0.dtype)
+        ends = [horner(c, h) for c in coefs]
+        sg = jax.lax.stop_gradient
         values = {}
         for i, c in enumerate(coefs):
-            values[("y1", i)] = horner(c, h)
-            values[("err", i)] = jax.lax.stop_gradient(_error(c, h, K))
+            values[("y1", i)] = ends[i]
+            values[("err", i)] = sg(_error(c, h, K))
+        if _switches(terms, t0, y0, args):
+            # The vector field where the step ends (the program at order 1): the
+            # defect (`_defect`) sees a branch that switched inside the step.
+            f1 = system.coefficients(
+                1,
+                lane(t0 + h),
+                [sg(y) for y in system.join(ends)],
+                [lane(p) for p in (unit, *arg_leaves)],
+            )
+            for i, c in enumerate(coefs):
+                defect = sg(_defect(c, f1[i][1], h, K))
+                values["err", i] = jnp.maximum(values["err", i], defect)
         # One loop for the new state and the estimate: without it XLA copies the
         # recurrence into each output's loop (see `one_fusion`).
         values = one_fusion(values)

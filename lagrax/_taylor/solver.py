@@ -47,6 +47,20 @@ class Taylor(AbstractTaylorSolver):
     longer than `max_step` in the lane's units of time (a fraction of its
     small-amplitude period, so that no event can be stepped over).
 
+    The coefficients follow the branches a Lagrangian takes at the step's start
+    (`jnp.where` on a comparison, `abs`, `max`, `floor`, ...): past a switch the
+    polynomial continues the old branch. Where `L` (or the force) has such a switch,
+    each step is checked where it ends, its defect
+    $h\,\lVert \ddot q(t_1) - p_{\ddot q}(h)\rVert_\infty/((K+1)\varepsilon)$
+    (the acceleration there against the polynomial's; for a smooth one about the
+    first term dropped over $\varepsilon$, $1/C$), and a step whose defect exceeds 1
+    is rejected and the next one shortened, as a Runge–Kutta pair's estimate does
+    across such a switch (`simulate_batch`; as a diffrax solver the defect joins the
+    error estimate); a Lagrangian without one pays nothing. The period kernel, which
+    never rejects a step, checks every step the same way and fails a lane whose step
+    has a defect above 100 (`solver_failed`); `Taylor(fallback=diffrax.Dopri8())`,
+    the default of `sweep_periods`, steps such a Lagrangian with its fallback there.
+
     The polynomials are the solution over the whole step, so an event (a turning
     point) is located inside the step that crosses it, as the root of the event
     function's polynomial with one Newton correction by the exact event value;
@@ -85,7 +99,8 @@ class Taylor(AbstractTaylorSolver):
     the coefficients' straight-line program would exceed ~2000 equations (the
     θ-form cycloid, the rotating hoop): the kernel would then loop over the orders,
     several times slower than Dopri8 per period and slower to compile; a plain
-    `Taylor()` still takes that loop. Which one ran is `SweepResult.solver`. Its
+    `Taylor()` still takes that loop, and where L switches branch (above). Which
+    one ran is `SweepResult.solver`. Its
     forward-mode derivative (the recurrence's tangent, for `jax.grad` of a sweep)
     compiles longer than a Runge–Kutta step's.
 

@@ -5,10 +5,14 @@ r"""Many trajectories at once: one compiled loop per device over refilling lanes
 Every iteration advances every lane by one Taylor step computed on the lane-batched
 arrays (the coefficient program of the vector field, unrolled over the orders and
 fused by XLA into one loop over the lanes), with the step length chosen from the
-last coefficients before the step (never rejected, as heyoka.py does); a lane whose
-trajectory ends writes its result and takes the next release from the queue, so lanes
-never wait for the slowest one. States at the requested times come from the step's
-own polynomials. With another solver it is `jax.vmap` of `lagrax.simulate`.
+last coefficients before the step (as heyoka.py does); a lane whose trajectory ends
+writes its result and takes the next release from the queue, so lanes never wait for
+the slowest one. States at the requested times come from the step's own polynomials.
+Where L (or the force) switches branch with the state or time (`jnp.where` on a
+comparison, `abs`, `max`, ...), each step is checked at its end (its defect: the
+acceleration there against its polynomial's) and rejected across a switch, the next
+one shorter, as a Runge–Kutta controller's estimate makes it; elsewhere no step is
+rejected. With another solver it is `jax.vmap` of `lagrax.simulate`.
 
 Why not `vmap(diffeqsolve)`: under `vmap` diffrax's loop runs every lane to the
 slowest one's step count and pays its general bookkeeping per lane-step (stage loop,
@@ -37,8 +41,9 @@ from .._checks import (
 from .._custom_types import GeneralizedForce, Lagrangian
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import elemental_options
+from .._jaxpr.switches import switches
 from .._stepper.base import LaneField
-from .._stepper.taylor import TaylorStepper, TRUNCATION
+from .._stepper.taylor import log2_approx, TaylorStepper, TRUNCATION
 from .._taylor.solver import Taylor
 from .._taylor.system import System
 from .simulate import elemental, simulate
@@ -96,6 +101,15 @@ class SystemTaylorStepper(TaylorStepper):
     def exp2(self, x):
         return _exp2(x)
 
+    def acceleration(self, s, x, v, sigma):
+        """The acceleration at `(s, x, v)` (tuples of `(W,)` columns) on every lane:
+        the program at order 1, whose one evaluation at order 0 fuses with the
+        step."""
+        n = len(x)
+        state = [jnp.stack(x, axis=1), jnp.stack(v, axis=1)]
+        coefs = self.system.coefficients(1, s, state, [sigma], unrolled=True, trig=True)
+        return tuple(c[1] for c in coefs[n:])
+
     def coefficients(self, field, s, x, v):
         K = self.order
         stacked = [jnp.stack(x, axis=1), jnp.stack(v, axis=1)]
@@ -140,7 +154,8 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
     """All releases through `cfg.width` refilling lanes of one device.
 
     Returns the saved states `(B, T, 2n)` (`T` = the save times, then the end if
-    `save_t1`), and per release the end time, the outcome and the step count.
+    `save_t1`), and per release the end time, the outcome, the steps tried and
+    those of them rejected.
 
     Each lane carries its state as `(W, n)` arrays and its time and constants as one
     `(W, 6)` array, and the queue is one table of packed rows: a refill is one gather
@@ -165,17 +180,26 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
     stepper = SystemTaylorStepper(
         order=cfg.order, max_step=np.inf, truncation=TRUNCATION, system=system
     )
+    # Whether a step must be checked for a switch of L's branches inside it (see
+    # `TaylorStepper.defect`): only where L or the force has one.
+    state = (q0[0], v0[0], t0[0])
+    checked = switches(lambda q, qdot, t, *c: cfg.L(q, qdot, t, *c), state, consts)
+    checked = checked or (cfg.force is not None and switches(cfg.force, state))
     sign = jnp.where(t1 >= t0, 1.0, -1.0).astype(dtype)
     # One row per release: its state in its own time (q, sigma qdot), its start
     # time sigma t0 as a sum of two floats (S0 + S0_LO, the low part 0 at release),
     # its end time sigma t1, sigma and its tolerances; one idle row at B.
-    S0, S0_LO, S1, SIGMA, RTOL, ATOL = range(6)
+    # After a rejected step, HMAX is the longest next step: the rest of the
+    # rejected one's span (where a branch of the acceleration switched) once a
+    # shorter step is taken; infinite otherwise.
+    S0, S0_LO, S1, SIGMA, RTOL, ATOL, HMAX = range(7)
+    inf = jnp.full_like(t0, jnp.inf)
     consts = jnp.stack(
-        [sign * t0, jnp.zeros_like(t0), sign * t1, sign, rtol, atol], axis=1
+        [sign * t0, jnp.zeros_like(t0), sign * t1, sign, rtol, atol, inf], axis=1
     )
     rows = jnp.concatenate([q0, sign[:, None] * v0, consts], axis=1)
-    idle = jnp.zeros((1, 2 * n + 6), dtype).at[0, 2 * n + SIGMA].set(1.0)
-    idle = idle.at[0, 2 * n + S1].set(1.0)
+    idle = jnp.zeros((1, 2 * n + 7), dtype).at[0, 2 * n + SIGMA].set(1.0)
+    idle = idle.at[0, 2 * n + S1].set(1.0).at[0, 2 * n + HMAX].set(jnp.inf)
     table = jnp.concatenate([rows, idle])
     # The save times in each lane's own time: sigma ts[j].
     taus = lambda p, j: p[:, SIGMA] * ts[jnp.minimum(j, M - 1)]
@@ -186,15 +210,18 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
 
     def body(carry):
         x, v, p, ints, done, saves, ends, nxt = carry
-        idx, j, steps = ints[:, 0], ints[:, 1], ints[:, 2]
+        idx, j, steps, rejected = ints[:, 0], ints[:, 1], ints[:, 2], ints[:, 3]
         active = ~done
         s, s_lo = p[:, S0], p[:, S0_LO]
-        lane_field = LaneField(
-            accel=lambda s, x, v: jax.tree.map(jnp.zeros_like, x), params=p[:, SIGMA]
-        )
-        # Never past the end, and at most one save time inside a step (the state
-        # there read from the step's polynomials, inside its fusion).
-        cap = to_end = (p[:, S1] - s) - s_lo
+        sigma = p[:, SIGMA]
+        # No acceleration: the step ends with its polynomials' (checked below where
+        # L switches branch).
+        lane_field = LaneField(accel=None, params=sigma)
+        # Never past the end, nor past a rejected step's span, and at most one save
+        # time inside a step (the state there read from the step's polynomials,
+        # inside its fusion).
+        to_end = (p[:, S1] - s) - s_lo
+        cap = jnp.minimum(to_end, p[:, HMAX])
         if M:
             after = jnp.where(j + 1 < M, (taus(p, j + 1) - s) - s_lo, jnp.inf)
             cap = jnp.minimum(cap, after)
@@ -210,21 +237,40 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
             lane_field, s, cols(x), cols(v), cols(x), cap, p[:, RTOL], p[:, ATOL],
             free=active, cap=cap, within=within,
         )  # fmt: skip
+        x1, v1 = jnp.stack(step.x, axis=1), jnp.stack(step.v, axis=1)
+        # A step across a switch of the acceleration (its defect above 1: see
+        # `TaylorStepper.defect`) is rejected, and the next one is shorter, as a
+        # Runge-Kutta controller shrinks its step across such a switch.
+        error = step.error
+        if checked:
+            a_end = stepper.acceleration(s + step.h, step.x, step.v, sigma)
+            rtols, atols = p[:, RTOL], p[:, ATOL]
+            defect = stepper.defect(step, a_end, cols(x), cols(v), rtols, atols)
+            error = jnp.where(jnp.isfinite(error), defect, jnp.nan)
+        finite = jnp.isfinite(x1).all(1) & jnp.isfinite(v1).all(1) & jnp.isfinite(error)
+        accept = active & finite & (error <= 1.0)
+        reject = active & finite & ~accept
         # The time as a compensated sum (two floats): rounded once per step, it
         # would drift by ~sqrt(steps) ulps, a phase error that no tolerance removes
         # (heyoka.py keeps its time the same way).
         t, t_lo = _two_sum(s, step.h + s_lo)
-        end = active & (step.h >= to_end)  # the step capped at the end time
-        t = jnp.where(end, p[:, S1], t)
-        t_lo = jnp.where(end, 0.0, t_lo)
-        x = jnp.where(active[:, None], jnp.stack(step.x, axis=1), x)
-        v = jnp.where(active[:, None], jnp.stack(step.v, axis=1), v)
-        steps = steps + active.astype(steps.dtype)
-        finite = (
-            jnp.isfinite(x).all(1) & jnp.isfinite(v).all(1) & jnp.isfinite(step.error)
+        end = accept & (step.h >= to_end)  # the step capped at the end time
+        t = jnp.where(end, p[:, S1], jnp.where(accept, t, s))
+        t_lo = jnp.where(end, 0.0, jnp.where(accept, t_lo, s_lo))
+        x = jnp.where(accept[:, None], x1, x)
+        v = jnp.where(accept[:, None], v1, v)
+        hmax = p[:, HMAX]
+        shrink = _exp2(-log2_approx(error) / (cfg.order + 1))
+        shrink = jnp.clip(0.9 * shrink, 0.2, 0.9)
+        hmax = jnp.where(
+            reject,
+            step.h * shrink,
+            jnp.where(accept & (step.h < hmax), hmax - step.h, jnp.inf),
         )
+        steps = steps + active.astype(steps.dtype)
+        rejected = rejected + reject.astype(rejected.dtype)
         if M:
-            hit = active & (j < M) & ((t - taus(p, j)) + t_lo >= 0)
+            hit = accept & (j < M) & ((t - taus(p, j)) + t_lo >= 0)
             qs, ws = (jnp.stack(c, axis=1) for c in step.extras)
             ysave = jnp.concatenate([qs, p[:, SIGMA, None] * ws], axis=1)
             saves = saves.at[jnp.where(hit, idx, B), jnp.minimum(j, M - 1)].set(
@@ -233,10 +279,10 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
             j = j + hit.astype(j.dtype)
         finished = active & (end | ~finite | (steps >= cfg.max_steps))
         code = jnp.where(~finite, _NONFINITE, jnp.where(end, _DONE, _MAX_STEPS))
-        sigma = p[:, SIGMA, None]
         row = jnp.concatenate(
-            [x, sigma * v, sigma * t[:, None], code[:, None].astype(dtype),
-             steps[:, None].astype(dtype)],
+            [x, sigma[:, None] * v, sigma[:, None] * t[:, None],
+             code[:, None].astype(dtype), steps[:, None].astype(dtype),
+             rejected[:, None].astype(dtype)],
             axis=1,
         )  # fmt: skip
         ends = ends.at[jnp.where(finished, idx, B)].set(row, mode="drop")
@@ -246,14 +292,14 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
         x_new, v_new, p_new, idle = load(new_idx)
         x = jnp.where(finished[:, None], x_new, x)
         v = jnp.where(finished[:, None], v_new, v)
-        p = jnp.where(
-            finished[:, None], p_new, p.at[:, S0].set(t).at[:, S0_LO].set(t_lo)
-        )
+        p = p.at[:, S0].set(t).at[:, S0_LO].set(t_lo).at[:, HMAX].set(hmax)
+        p = jnp.where(finished[:, None], p_new, p)
         zero = jnp.zeros_like(j)
         ints = jnp.stack(
-            [new_idx, jnp.where(finished, zero, j), jnp.where(finished, zero, steps)],
+            [new_idx, jnp.where(finished, zero, j), jnp.where(finished, zero, steps),
+             jnp.where(finished, zero, rejected)],
             axis=1,
-        )
+        )  # fmt: skip
         done = jnp.where(finished, idle, done)
         nxt = nxt + jnp.sum(finished).astype(nxt.dtype)
         return x, v, p, ints, done, saves, ends, nxt
@@ -263,12 +309,12 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
 
     idx0 = jnp.arange(W, dtype=jnp.int32)
     x, v, p, done = load(idx0)
-    ints = jnp.stack([idx0, jnp.zeros_like(idx0), jnp.zeros_like(idx0)], axis=1)
+    ints = jnp.stack([idx0] + [jnp.zeros_like(idx0)] * 3, axis=1)
     # Lanes with nothing to write aim past the end, and their rows are dropped: a
     # scatter whose lanes all wrote one spare row ran ~40 ms per iteration on a GPU
     # (10^4 lanes, the writes to one row serialized), as long as the step itself.
     saves = jnp.full((B, M, 2 * n), jnp.nan, dtype)
-    ends = jnp.full((B, 2 * n + 3), jnp.nan, dtype)
+    ends = jnp.full((B, 2 * n + 4), jnp.nan, dtype)
     carry = (x, v, p, ints, done, saves, ends, jnp.int32(W))
     *_, saves, ends, _ = jax.lax.while_loop(cond, body, carry)
     m = 2 * n
@@ -276,7 +322,8 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
     if cfg.save_t1:
         ys = jnp.concatenate([ys, ends[:, None, :m]], axis=1)
     code = jnp.where(jnp.isnan(ends[:, m + 1]), _RUNNING, ends[:, m + 1])
-    return ys, ends[:, m], code.astype(jnp.int32), ends[:, m + 2].astype(jnp.int32)
+    counts = ends[:, m + 2 : m + 4].astype(jnp.int32)
+    return ys, ends[:, m], code.astype(jnp.int32), counts[:, 0], counts[:, 1]
 
 
 def _none(x):
@@ -497,7 +544,7 @@ def simulate_batch(
             # says which); under `vmap` or `jvp` it takes them.
             jitted = _compiled(False, devices[:D])
             out = jitted(cfg, shape, *args, ts_arr, consts)
-    ts_out, qs, vs, result, nsteps, zeros, failed = out
+    ts_out, qs, vs, result, nsteps, rejected, failed = out
     result = jax.tree.unflatten(_RESULT_TREE, [result])
     sol = dfx.Solution(
         t0=t0,
@@ -507,8 +554,8 @@ def simulate_batch(
         interpolation=None,
         stats=dict(
             num_steps=nsteps,
-            num_accepted_steps=nsteps,
-            num_rejected_steps=zeros,
+            num_accepted_steps=nsteps - rejected,
+            num_rejected_steps=rejected,
             max_steps=max_steps,
         ),
         result=result,
@@ -528,10 +575,11 @@ def simulate_batch(
 _RESULT_TREE = jax.tree.structure(dfx.RESULTS.successful)
 
 
-def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, ts_arr):
+def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, rejected, ts_arr):
     """The loop's outputs as a `Solution`'s arrays, and the number of releases that
     failed."""
-    ys, tend, code, nsteps = ys[:B], tend[:B], code[:B], nsteps[:B]
+    ys, tend, code = ys[:B], tend[:B], code[:B]
+    nsteps, rejected = nsteps[:B], rejected[:B]
     times = []
     if has_ts:
         times.append(jnp.broadcast_to(ts_arr, (B, ts_arr.shape[0])))
@@ -554,7 +602,7 @@ def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, ts_arr):
         vs,
         result,
         nsteps,
-        jnp.zeros_like(nsteps),
+        rejected,
         jnp.sum(code != _DONE),
     )
 
