@@ -267,6 +267,134 @@ def heyoka_method(system, n):
     return run
 
 
+# ------------------------------------------------------------------- period estimate
+
+
+def _hump_releases(n):
+    """The asymmetric well (V = x^2/2 + x^3/3, hump 1/6 at x = -1): `n` releases
+    from rest on both sides up to 0.99 of the hump's height."""
+    from scipy.optimize import brentq
+
+    V = lambda x: 0.5 * x**2 + x**3 / 3
+    left = brentq(lambda x: V(x) - 0.99 / 6, -1, 0)
+    right = brentq(lambda x: V(x) - 0.99 / 6, 0, 2)
+    half = n // 2
+    return np.concatenate(
+        [np.linspace(left, -1e-3, half), np.linspace(1e-3, right, n - half)]
+    )
+
+
+def _well_period(x0):
+    """The asymmetric well's period from rest at the float64 `x0`, to 40 digits:
+    E - V = (x - r)(x - a)(b - x)/3, x = a + (b - a)(1 - cos p)/2."""
+    import mpmath
+
+    with mpmath.workdps(40):
+        x0 = mpmath.mpf(float(x0))
+        E = x0**2 / 2 + x0**3 / 3
+        cubic = [-mpmath.mpf(1) / 3, -mpmath.mpf(1) / 2, 0, E]
+        r, a, b = sorted(mpmath.re(z) for z in mpmath.polyroots(cubic, extraprec=200))
+        x = lambda p: a + (b - a) * (1 - mpmath.cos(p)) / 2
+        f = lambda p: 1 / mpmath.sqrt(2 * (x(p) - r) / 3)
+        return float(2 * mpmath.quad(f, [0, mpmath.pi]))
+
+
+def _pendulum_period(a):
+    """The pendulum's period from rest at the float64 `a` (g = r = 1), 40 digits."""
+    import mpmath
+
+    with mpmath.workdps(40):
+        return float(
+            2 * mpmath.pi / mpmath.agm(1, mpmath.cos(mpmath.mpf(float(a)) / 2))
+        )
+
+
+def period_cases(quick, cache):
+    """name -> (L, q0, exact periods): the pendulum over 0.01 .. pi - 1e-3 and the
+    asymmetric well to 0.99 of its hump, references to 40 digits (cached)."""
+    from lagrax.systems import asymmetric_well, pendulum
+
+    out = {}
+    for name, L, q0, exact in [
+        (
+            "pendulum",
+            pendulum.lagrangian(),
+            np.linspace(0.01, np.pi - 1e-3, 256 if quick else 2047),
+            _pendulum_period,
+        ),
+        (
+            "asymmetric_well",
+            asymmetric_well.lagrangian(),
+            _hump_releases(64 if quick else 256),
+            _well_period,
+        ),
+    ]:
+        path = pathlib.Path(cache) / f"periods_{name}_{len(q0)}.npy"
+        if path.exists():
+            T = np.load(path)
+        else:
+            T = np.array([exact(x) for x in q0])
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.save(path, T)
+        out[name] = (L, q0, T)
+    return out
+
+
+def run_periods(quick, cache, rtols, methods=None, solvers=None):
+    """Per system, method, solver and rtol: the true relative error of each period and
+    its estimate over it (median, 5th percentile, smallest), the lanes reported
+    `tolerance_not_met` and those returned with an estimate below their true
+    error."""
+    rows = []
+    steppers = {"Taylor": lagrax.Taylor(), "Dopri8": dfx.Dopri8()}
+    for system, (L, q0, T) in period_cases(quick, cache).items():
+        for method in ("matched", "half", "full", "quarter"):
+            if methods and method not in methods:
+                continue
+            if method == "quarter" and system != "pendulum":
+                continue  # (not mirror-symmetric: refused)
+            for sname, solver in steppers.items():
+                if solvers and sname not in solvers:
+                    continue
+                for rtol in rtols:
+                    res = lagrax.sweep_periods(
+                        L, jnp.asarray(q0), solver=solver, method=method,
+                        rtol=rtol, atol=rtol,
+                    )  # fmt: skip
+                    status = np.asarray(res.status)
+                    ok = status == 0
+                    true = np.abs(np.asarray(res.periods)[ok] / T[ok] - 1)
+                    est = np.asarray(res.error_estimate)[ok]
+                    ratio = est / np.maximum(true, 1e-300)
+                    rows.append(
+                        dict(
+                            system=system, method=method, solver=sname, rtol=rtol,
+                            lanes=len(q0), success=int(ok.sum()),
+                            tolerance_not_met=int((status == 12).sum()),
+                            other_failures=int((~ok & (status != 12)).sum()),
+                            max_error=float(true.max()),
+                            median_error=float(np.median(true)),
+                            median_ratio=float(np.median(ratio)),
+                            p5_ratio=float(np.percentile(ratio, 5)),
+                            min_ratio=float(ratio.min()),
+                            below=int((est < true).sum()),
+                            median_estimate=float(np.median(est)),
+                        )
+                    )  # fmt: skip
+                    print(_fmt_period(rows[-1]), flush=True)
+    return rows
+
+
+def _fmt_period(r):
+    return (
+        f"{r['system']:15s} {r['method']:8s} {r['solver']:7s} rtol={r['rtol']:.0e} "
+        f"ok {r['success']}/{r['lanes']} unmet {r['tolerance_not_met']} "
+        f"max err {r['max_error']:.1e} med err {r['median_error']:.1e} | "
+        f"est/true median {r['median_ratio']:7.1f} p5 {r['p5_ratio']:6.2f} "
+        f"min {r['min_ratio']:6.2f} below {r['below']}"
+    )
+
+
 # ------------------------------------------------------------------------------ main
 
 
@@ -347,7 +475,24 @@ def main():
         default=os.path.join(tempfile.gettempdir(), "lagrax_accuracy_reference"),
     )
     p.add_argument("--out", default=None)
+    p.add_argument(
+        "--periods", action="store_true",
+        help="the period sweeps' error estimates instead (sweep_periods)",
+    )  # fmt: skip
+    p.add_argument("--period-methods", nargs="*", default=None)
+    p.add_argument("--period-solvers", nargs="*", default=None)
     args = p.parse_args()
+    if args.periods:
+        rtols = args.tols or [1e-13, 1e-10]
+        rows = run_periods(
+            args.quick, args.cache, rtols, args.period_methods, args.period_solvers
+        )
+        name = f"accuracy_periods{'_quick' if args.quick else ''}.json"
+        out = args.out or RESULTS / name
+        with open(out, "w") as f:
+            json.dump(dict(rows=rows), f, indent=1)
+        print(f"wrote {out}")
+        return
     tols = args.tols or TOLS
     rows = []
     for system in args.systems:

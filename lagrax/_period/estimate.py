@@ -1,14 +1,17 @@
 r"""The per-lane error estimate of a period.
 
 With a Taylor step and `"matched"`, a first-order bound summed in the same loop
-(`screen`): per step, the error bound of the step (its truncation, from the last
-coefficients, and the rounding of the state) as a time shift along the orbit and an
+(`screen`): per step, the error bound of the step (its truncation, the first terms
+dropped from the coefficients and the acceleration's defect, and the rounding of the
+state) as a time shift along the orbit and an
 energy error, which moves the end of the leg by its leverage $\int ds/\dot q^2$ over
 the rest of it (Gauss–Legendre on the step's velocity polynomial); and the far
 turning point's band times $d\tau/dE$, the finite part of that integral from rest.
 Lanes it cannot vouch for, and every other method and stepper, are solved a second
 time at `LOOSER` times the tolerances (`second_solve_estimate`).
 """
+
+import functools
 
 import equinox as eqx
 import jax
@@ -63,23 +66,42 @@ class BoundTerms(eqx.Module):
     G: Float[Array, " lanes"]
 
 
-def step_terms(stepper, expansion, v, h) -> StepTerms:
-    """The step's terms of the bound, from its polynomials and the step `h` taken.
+def step_terms(stepper, expansion, v, h, a_end) -> StepTerms:
+    r"""The step's terms of the bound, from its polynomials, the step `h` taken and
+    the acceleration `a_end` where it ends.
 
-    The truncation: the last two terms kept, the second-to-last scaled by the step's
-    ratio h/ρ to the radius of convergence (a bound on the first term dropped,
-    pessimistic by ρ/h). W = ∫ ds / v(s)² over the step by 3-point Gauss–Legendre on
+    The truncation, each a first term dropped times the geometric tail
+    $1/(1 - h/\rho)$: of the position, $x_{K+1} h^{K+1} = v_K h^{K+1}/(K+1)$ (known:
+    $x' = v$); of the velocity, measured as the acceleration's, $h\,|a_1 -
+    p_a(h)|/(K+1)$ (the acceleration where the step ends against its polynomial's,
+    of degree $K - 1$). W = ∫ ds / v(s)² over the step by 3-point Gauss–Legendre on
     the velocity polynomial; from rest (v = a0 s + ...) its Hadamard finite part,
     ∫ (1/v² - 1/(a0 s)²) ds - 1/(a0² h). One division per node (each with one
     reader: the step is one fusion). No tangents: the estimate is not
     differentiated."""
     scale = stepper.radius_fraction(expansion.tol)
-    terms = (expansion.xs, expansion.vs, expansion.as_, v, h, scale)
-    xs, vs, as_, v, hu, scale = jax.tree.map(jax.lax.stop_gradient, terms)
+    terms = (expansion.xs, expansion.vs, expansion.as_, v, h, scale, a_end)
+    xs, vs, as_, v, hu, scale, a_end = jax.tree.map(jax.lax.stop_gradient, terms)
     K = stepper.order
-    hk1 = hu ** (K - 1)
-    dq = hk1 * (jnp.abs(xs[K]) * hu + scale * jnp.abs(xs[K - 1]))
-    dv = hk1 * (jnp.abs(vs[K]) * hu + scale * jnp.abs(vs[K - 1]))
+    # 1/(1 - q) by its series (no division: one with several readers would split
+    # the step's fusion), q = h/ρ at most 3/4.
+    q = jnp.minimum(scale, 0.75)
+    tail = jnp.ones_like(q)
+    for _ in range(12):
+        tail = 1.0 + q * tail
+    # The position's first term dropped, x_{K+1} h^{K+1}, and the last ones kept
+    # carried on by a factor q per order to the first order dropped: K + 1, or K + 2
+    # where x is even in time (released from rest: its odd coefficients vanish).
+    even = (vs[K] == 0) & (xs[K - 1] == 0) & (xs[K - 3] == 0)
+    extra = jnp.where(even, q, 1.0)
+    terms = [
+        jnp.abs(vs[K]) * hu / (K + 1),
+        jnp.abs(xs[K]) * q * extra,
+        jnp.abs(xs[K - 1]) * q**2,
+        jnp.abs(xs[K - 2]) * q**3 * extra,
+    ]
+    dq = tail * hu**K * functools.reduce(jnp.maximum, terms)
+    dv = tail * hu * jnp.abs(a_end - horner(as_, hu)) / (K + 1)
     rest = v == 0
     a2 = jnp.where(rest, as_[0] * as_[0], 1.0)
     w_sum = None
@@ -128,8 +150,10 @@ def screen(T, t_a, t_b, terms_a: BoundTerms, terms_b: BoundTerms, band, rtols):
     eps = jnp.finfo(T.dtype).eps
     T, t_a, t_b, band = jax.lax.stop_gradient((T, t_a, t_b, band))
     a, b = terms_a, terms_b
-    err = 2 * (a.ph + a.J + b.ph + b.J + band * jnp.abs(b.F)) + 16 * eps * (t_a + t_b)
-    bound = _SCREEN_SAFETY * err / jnp.abs(T) + 64 * eps
+    err = 2 * (a.ph + a.J + b.ph + b.J) + 16 * eps * (t_a + t_b)
+    # (The band is itself a bound on the root's rounding: no safety factor on it.)
+    far = 2 * band * jnp.abs(b.F)
+    bound = (_SCREEN_SAFETY * err + far) / jnp.abs(T) + 64 * eps
     usable = (a.G <= _SCREEN_LEVERAGE) & (b.G <= _SCREEN_LEVERAGE)
     usable = usable & jnp.isfinite(bound) & jnp.isfinite(band)
     return jnp.where(usable, bound, jnp.inf)

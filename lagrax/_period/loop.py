@@ -154,7 +154,7 @@ def _within(stepper, event, field, base, free, screen):
         if raw.expansion is None:
             return dataclasses.replace(raw, extras=(None, None))
         raw, located = locate_in_step(raw, event, field.accel, s, x, v, free)
-        terms = step_terms(stepper, raw.expansion, v, raw.h) if screen else None
+        terms = step_terms(stepper, raw.expansion, v, raw.h, raw.a) if screen else None
         return dataclasses.replace(raw, extras=(located, terms))
 
     return within

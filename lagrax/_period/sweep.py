@@ -95,14 +95,18 @@ def sweep_periods(
     that second solve costs a little less than the first, for the lanes that need it
     only. Validated with `Taylor()` and `Dopri8` against exact periods (pendulum,
     cycloid, the asymmetric well to 0.99 of its hump against a 40-digit quadrature,
-    random wells against `quadrature_period`): never below the true error; the second
-    solve's ~25x above it at the median (up to ~200x where "half" integrates through the
-    bottom near a separatrix, whose rounding loss is random), the bound ~13-50x above
-    the true error floored at 1e-14 (the true error at the default tolerances is mostly
-    rounding, ~1e-15). With lower-order pairs (`Tsit5`, `Dopri5`) the calibration is not
-    established: the second solve's estimate was measured below the true error on some
-    lanes (0.47x). A lane whose estimate exceeds 100 rtol gets status
-    `tolerance_not_met` and no number; `error_estimate=False` skips the estimate.
+    random wells against `quadrature_period`; `benchmarks/accuracy.py --periods`).
+    The bound is never below the true error from rtol 1e-13 to 1e-8, 4-20x above it
+    at the median from 1e-12 on and ~50-80x at the default, where the true error is
+    a few ulps of rounding. The second solve's estimate is ~25x above it at the median
+    at the default tolerances, but it compares two solves: where a lane's error does
+    not shrink with the tolerance it can fall below (measured with Dopri8 at rtol
+    1e-10 on a few percent of the pendulum's lanes, and near a separatrix with
+    "half" and "full", whose rounding loss past the bottom is random). With
+    lower-order pairs (`Tsit5`, `Dopri5`) the calibration is not established: the
+    second solve's estimate was measured below the true error on some lanes (0.47x).
+    A lane whose estimate exceeds 100 rtol gets status `tolerance_not_met` and no
+    number; `error_estimate=False` skips the estimate.
 
     A failing lane is reported in `status` and never changes the others: their periods
     are bit-for-bit those of a sweep without it. Differentiable with `jax.grad`,
