@@ -277,7 +277,7 @@ class System:
         store.update(zip(y_ids, coefs))
         st = _Unrolled(zero, lanes, store)
         for k in range(1, K):
-            st.k, st.kf = k, float(k)
+            st.k, st.kf, st.cur = k, float(k), {}  # (`get` reads `cur` first)
             st.cur = {t_id: st.get(t_id)}
             st.cur.update((i, c[k]) for i, c in zip(y_ids, coefs))
             _order_k(st, prog)
