@@ -3,38 +3,42 @@ r"""The compact coefficient program: the recurrences as data (heyoka's compact m
 `program.py` and `system.py` write the recurrences of a vector field's program out
 order by order: XLA compiles one straight-line program per Lagrangian, whose size
 grows with orders x nodes and whose compile grows faster still. Here the same
-recurrences run in ONE program per *size class*, the equations being data:
+recurrences run in ONE program per *size class*, the equations being data (a
+`CompactTape`), as heyoka's compact mode runs them:
 
-- Every variable of the flattened program (`_Program`) is a *slot* of one tape
-    `T[slot, order, lane]`, order 0 its value.
-- Orders $k \ge 1$: the nodes are grouped by dependency level (a node reads at
-    order $k$ only nodes of lower levels) into *blocks* of at most `Gc` Cauchy and
-    `Gl` linear nodes, each block one vectorized operation over its nodes and lanes,
-    its operands gathered by index arrays, its outputs written as one contiguous
-    slice. Two forms cover every recurrence of `recurrences.py`:
+- Every node of the flattened program (`_Program`) computes its $k$-th coefficient
+    by one of three forms, with $X, Y, P, Q$ its operands' series:
 
-    $$\text{linear: } y_k = c_0 X_k + c_1 Y_k,\qquad
-    \text{Cauchy: } y_k = c_3\Bigl(c_0 X_k + \sum_{j=0}^{k}
-    \bigl(c_1 + c_2 \tfrac{j}{k}\bigr) P_j Q_{k-j}\Bigr),$$
+    $$\text{Cauchy: } y_k = d\,\bigl(c_0 X_k + c_1 \textstyle\sum_{j=0}^{k}
+    P_j Q_{k-j}\bigr) + e\,\tfrac1k \textstyle\sum_{j=0}^{k} j P_j Q_{k-j},
+    \qquad \text{linear: } y_k = s_0 X_k + s_1 Y_k,$$
 
-    with per-lane coefficients $c$ set at order 0 (e.g. $c_3 = 1/w_0$ for a quotient
-    $u/w$; a product of series has $c = (0, 1, 0, 1)$; a sine $s$ with its cosine
-    $c$, $P = u$, $Q = c$, $c_2 = 1$). A term whose operand is the node's own, still
-    unknown, coefficient $y_k$ reads zero: the tape's orders above 0 start at zero
-    in every step.
-- Order 0: the nodes grouped by level and *family* (arithmetic, transcendental, a
-    mass-matrix factorization), each block evaluating its family's functions on
-    gathered operands and selecting by opcode, and writing each node's value and
-    coefficients.
-- The loop over blocks is a `lax.fori_loop` whose length and index arrays are
-    arguments: the compiled program depends on the tape's sizes (a size class), not
-    on the Lagrangian, so one executable serves every system of its class and lives
-    in the library's disk cache. The orders are written out (their Cauchy sums then
-    have exactly $k + 1$ terms).
+    with $c, s$ constants of the node (a product $c = (0, 1)$, $d = 1$, $e = 0$; a
+    sine with its cosine as $Q$: $c = (0, 0)$, $e = 1$) and $d, e$ (and a linear
+    node's $s$ where it depends on the state, e.g. a `where`) per lane, set at
+    order 0 (a quotient $u/w$: $d = 1/w_0$). A term whose operand is the node's
+    own, still unknown, coefficient $y_k$ reads zero.
+- Orders $k \ge 1$ run level by level (a node reads at order $k$ only nodes of
+    lower levels); a level is blocks of `Gc` Cauchy nodes, then of `Gl` linear
+    nodes with constant and with per-lane coefficients, each block one vectorized
+    operation over its nodes and lanes: its operands gathered by index arrays,
+    its outputs one contiguous slice of the values of order $k$. The Cauchy sums
+    read the orders below $k$ from *histories* stored once per order, zero where
+    not yet computed, so a sum over a fixed window of terms is exact.
+- Order 0 runs level by level too, each level's nodes in blocks of one *family*
+    (affine, other arithmetic, logic, sine and cosine, other transcendental, a
+    mass-matrix factorization), evaluating the primitives and setting the
+    per-lane coefficients.
+- The loops over levels, blocks and orders are `lax.fori_loop`s whose bounds and
+    index arrays are arguments: the compiled program depends on the tape's sizes
+    and the families it holds (its size class), not on the Lagrangian, so one
+    executable serves every system of its class and can live in the library's
+    disk cache.
 
 `benchmarks/taylor_coefficients.py` measures it against the unrolled program.
 """
 
+import functools
 import math
 
 import equinox as eqx
@@ -49,169 +53,146 @@ from .._jaxpr import trig as _trig
 __all__ = ["CompactTape", "build", "compact_coefficients"]
 
 # --- opcodes --------------------------------------------------------------------------
-#
-# Each opcode: its order-0 family, its form at orders >= 1 ("cau", "lin" or None),
-# where the form's operands come from (a, b, c: the node's operands; "o": its own
-# output; "-": the zero slot), and which of them the form needs at the same order
-# (`_NEEDS`; the others are read at lower orders only, and do not order the levels).
 
-_COMMON, _RARE, _LOGIC, _TRANS = 0, 1, 2, 3
+# Order-0 families: each block of order 0 holds nodes of one.
+AFFINE, RARE, LOGIC, SINCOS, TRANS = range(5)
+_FAMILY_NAMES = ("affine", "rare", "logic", "sincos", "trans")
 
+# name: (order-0 family, form at orders >= 1, the form's operands (a, b, c: the
+# node's; "o": its own output; "-": zero), its constant coefficients).
 _OPS = {
-    # name: (family, form, operands of the form)
-    "zero": (_COMMON, "cau", ("-", "a", "b")),  # sum_j M_j x_{k-j} (x_k still zero)
-    "copy": (_COMMON, "lin", ("a", "-")),
-    "add": (_COMMON, "lin", ("a", "b")),
-    "sub": (_COMMON, "lin", ("a", "b")),
-    "neg": (_COMMON, "lin", ("a", "-")),
-    "mul": (_COMMON, "cau", ("-", "a", "b")),
-    "scale": (_COMMON, "lin", ("a", "-")),  # a * b, b fixed along the step
-    "div": (_RARE, "cau", ("a", "b", "o")),
-    "divc": (_RARE, "lin", ("a", "-")),  # a / b, b fixed
-    "rdiv": (_RARE, "cau", ("-", "b", "o")),  # a / b, a fixed
-    "abs": (_RARE, "lin", ("a", "-")),
-    "max": (_RARE, "lin", ("a", "b")),
-    "min": (_RARE, "lin", ("a", "b")),
-    "select": (_COMMON, "lin", ("b", "c")),  # select_n(a, b, c): c where a
-    "rem": (_RARE, "lin", ("a", "-")),  # rem(a, b), b fixed
-    "sq1p": (_RARE, "cau", ("-", "a", "a")),  # 1 + a^2
-    "sq1m": (_RARE, "cau", ("-", "a", "a")),  # 1 - a^2
-    "logw": (_RARE, "cau", ("a", "a", "a")),  # a - a^2
-    "lincomb": (_COMMON, "lin", ("a", "b")),  # coefficients from a factorization
-    # order 0 only (piecewise constant):
-    "lt": (_LOGIC, None, ()),
-    "le": (_LOGIC, None, ()),
-    "gt": (_LOGIC, None, ()),
-    "ge": (_LOGIC, None, ()),
-    "eq": (_LOGIC, None, ()),
-    "ne": (_LOGIC, None, ()),
-    "and": (_LOGIC, None, ()),
-    "or": (_LOGIC, None, ()),
-    "not": (_LOGIC, None, ()),
-    "xor": (_LOGIC, None, ()),
-    "is_finite": (_LOGIC, None, ()),
-    "sign": (_LOGIC, None, ()),
-    "floor": (_LOGIC, None, ()),
-    "ceil": (_LOGIC, None, ()),
-    "round": (_LOGIC, None, ()),
-    # transcendental
-    "sin": (_TRANS, "cau", ("-", "a", "b")),  # b: the partner cosine
-    "cos": (_TRANS, "cau", ("-", "a", "b")),
-    "sinh": (_TRANS, "cau", ("-", "a", "b")),
-    "cosh": (_TRANS, "cau", ("-", "a", "b")),
-    "exp": (_TRANS, "cau", ("-", "a", "o")),
-    "expm1": (_TRANS, "cau", ("a", "a", "o")),
-    "log": (_TRANS, "cau", ("a", "o", "a")),
-    "log1p": (_TRANS, "cau", ("a", "o", "a")),
-    "sqrt": (_TRANS, "cau", ("a", "o", "o")),
-    "pow": (_TRANS, "cau", ("-", "a", "o")),  # a ** b, b fixed
-    "tan": (_TRANS, "cau", ("-", "a", "b")),  # b: 1 + t^2
-    "tanh": (_TRANS, "cau", ("-", "a", "b")),  # b: 1 - t^2
-    "atan": (_TRANS, "cau", ("a", "o", "b")),  # b: 1 + a^2
-    "logistic": (_TRANS, "cau", ("-", "a", "b")),  # b: s - s^2
+    "zero": (AFFINE, "cau", ("-", "a", "b"), (0.0, 1.0)),  # sum_j M_j x_{k-j}
+    "add": (AFFINE, "slin", ("a", "b"), (1.0, 1.0)),
+    "sub": (AFFINE, "slin", ("a", "b"), (1.0, -1.0)),
+    "neg": (AFFINE, "slin", ("a", "-"), (-1.0, 0.0)),
+    "copy": (AFFINE, "slin", ("a", "-"), (1.0, 0.0)),
+    "scalec": (AFFINE, "slin", ("a", "-"), None),  # a * (a literal b)
+    "mul": (AFFINE, "cau", ("-", "a", "b"), (0.0, 1.0)),
+    "div": (RARE, "cau", ("a", "b", "o"), (1.0, -1.0)),
+    "rdiv": (RARE, "cau", ("-", "b", "o"), (0.0, -1.0)),  # a / b, a fixed
+    "divc": (RARE, "dlin", ("a", "-"), None),  # a / b, b fixed
+    "scale": (RARE, "dlin", ("a", "-"), None),  # a * b, b fixed
+    "abs": (RARE, "dlin", ("a", "-"), None),
+    "max": (RARE, "dlin", ("a", "b"), None),
+    "min": (RARE, "dlin", ("a", "b"), None),
+    "select": (RARE, "dlin", ("b", "c"), None),  # select_n(a, b, c): c where a
+    "lincomb": (RARE, "dlin", ("a", "b"), None),  # coefficients of a factorization
+    "rem": (RARE, "slin", ("a", "-"), (1.0, 0.0)),  # rem(a, b), b fixed
+    "sq1p": (RARE, "cau", ("-", "a", "a"), (0.0, 1.0)),  # 1 + a^2
+    "sq1m": (RARE, "cau", ("-", "a", "a"), (0.0, -1.0)),  # 1 - a^2
+    "logw": (RARE, "cau", ("a", "a", "a"), (1.0, -1.0)),  # a - a^2
+    "sin": (SINCOS, "cau", ("-", "a", "b"), (0.0, 0.0)),  # b: its cosine
+    "cos": (SINCOS, "cau", ("-", "a", "b"), (0.0, 0.0)),
+    "sinh": (TRANS, "cau", ("-", "a", "b"), (0.0, 0.0)),
+    "cosh": (TRANS, "cau", ("-", "a", "b"), (0.0, 0.0)),
+    "exp": (TRANS, "cau", ("-", "a", "o"), (0.0, 0.0)),
+    "expm1": (TRANS, "cau", ("a", "a", "o"), (1.0, 0.0)),
+    "log": (TRANS, "cau", ("a", "o", "a"), (1.0, 0.0)),
+    "log1p": (TRANS, "cau", ("a", "o", "a"), (1.0, 0.0)),
+    "sqrt": (TRANS, "cau", ("a", "o", "o"), (1.0, -1.0)),
+    "pow": (TRANS, "cau", ("-", "a", "o"), (0.0, -1.0)),  # a ** b, b fixed
+    "tan": (TRANS, "cau", ("-", "a", "b"), (0.0, 0.0)),  # b: 1 + t^2
+    "tanh": (TRANS, "cau", ("-", "a", "b"), (0.0, 0.0)),  # b: 1 - t^2
+    "atan": (TRANS, "cau", ("a", "o", "b"), (1.0, 0.0)),  # b: 1 + a^2
+    "logistic": (TRANS, "cau", ("-", "a", "b"), (0.0, 0.0)),  # b: s - s^2
+    **{
+        name: (LOGIC, None, (), None)
+        for name in (
+            "lt",
+            "le",
+            "gt",
+            "ge",
+            "eq",
+            "ne",
+            "and",
+            "or",
+            "not",
+            "xor",
+            "is_finite",
+            "sign",
+            "floor",
+            "ceil",
+            "round",
+        )
+    },  # fmt: skip
 }
 OPCODE = {name: i for i, name in enumerate(_OPS)}
-# Operands of a Cauchy form read at lower orders only (their term at order k has a
-# zero weight, or is the unknown itself): X, P, Q needed at the same order?
+# Which Cauchy operands `(X, P, Q)` a node reads at the same order: the others are
+# read at lower orders only (their term at order k weighs nothing, or is the unknown
+# itself), and do not order the levels.
 _NEEDS = {
     "zero": (False, True, False),
-    "sin": (False, True, False),
-    "cos": (False, True, False),
-    "sinh": (False, True, False),
-    "cosh": (False, True, False),
-    "tan": (False, True, False),
-    "tanh": (False, True, False),
-    "logistic": (False, True, False),
-    "atan": (True, False, False),
-    "log": (True, False, False),
-    "log1p": (True, False, False),
+    **{name: (False, True, False) for name in ("sin", "cos", "sinh", "cosh")},
+    **{name: (False, True, False) for name in ("tan", "tanh", "logistic")},
+    **{name: (True, False, False) for name in ("atan", "log", "log1p")},
+}
+# Which Cauchy sums a node's form weighs: its plain sum only (products, quotients),
+# its weighted sum only (derivatives of functions: sin, exp, ...), or both.
+_SUMS = {
+    **{
+        name: 0
+        for name in ("zero", "mul", "div", "rdiv", "sq1p", "sq1m", "logw", "sqrt")
+    },
+    **{
+        name: 1
+        for name in (
+            "sin", "cos", "sinh", "cosh", "exp", "expm1", "log", "log1p", "tan",
+            "tanh", "atan", "logistic",
+        )
+    },
+    "pow": 2,
+}  # fmt: skip
+# The affine family's order-0 value, alpha a + beta b + gamma a b.
+_AFFINE = {
+    "zero": (0.0, 0.0, 0.0),
+    "add": (1.0, 1.0, 0.0),
+    "sub": (1.0, -1.0, 0.0),
+    "neg": (-1.0, 0.0, 0.0),
+    "copy": (1.0, 0.0, 0.0),
+    "mul": (0.0, 0.0, 1.0),
 }
 
 # Primitives that, on scalars, only move or retype their operand.
 _ALIAS = frozenset(
     {
-        "copy",
-        "copy_p",
-        "convert_element_type",
-        "reshape",
-        "squeeze",
-        "expand_dims",
-        "broadcast_in_dim",
-        "transpose",
-        "slice",
-        "concatenate",
-        "reduce_sum",
-        "reduce_max",
-        "reduce_min",
-        "stop_gradient",
-        "reduce_precision",
-        "real",
-        "rev",
-        "optimization_barrier",
+        "copy", "copy_p", "convert_element_type", "reshape", "squeeze",
+        "expand_dims", "broadcast_in_dim", "transpose", "slice", "concatenate",
+        "reduce_sum", "reduce_max", "reduce_min", "stop_gradient",
+        "reduce_precision", "real", "rev", "optimization_barrier",
     }
-)
+)  # fmt: skip
+# Primitives that are an opcode under their own name.
 _SAME = frozenset(
     {
-        "add",
-        "sub",
-        "neg",
-        "abs",
-        "max",
-        "min",
-        "rem",
-        "exp",
-        "expm1",
-        "log",
-        "log1p",
-        "sqrt",
-        "tanh",
-        "tan",
-        "atan",
-        "logistic",
-        "lt",
-        "le",
-        "gt",
-        "ge",
-        "eq",
-        "ne",
-        "and",
-        "or",
-        "not",
-        "xor",
-        "is_finite",
-        "sign",
-        "floor",
-        "ceil",
-        "round",
+        "add", "sub", "neg", "abs", "max", "min", "exp", "expm1", "log", "log1p",
+        "sqrt", "lt", "le", "gt", "ge", "eq", "ne", "and", "or", "not", "xor",
+        "is_finite", "sign", "floor", "ceil", "round",
     }
-)
+)  # fmt: skip
 
 
 class CompactTape(eqx.Module):
-    r"""A program as data for `compact_coefficients`; every field an array, so that
-    tapes of one size class (`size`) share one compiled program.
+    r"""A program as data for `compact_coefficients`: index arrays, constants and
+    sizes, so that tapes of one size class (`size`) share one compiled program.
 
     Slots number the program's variables twice: in *order-0 space* and in *series
-    space*, where the outputs of each block of order 0, respectively of the orders
-    above, are consecutive slots (`G0`, respectively `Gc + Gl` per block, from slot
-    `head`); `perm` maps series space onto order-0 space. Both start alike: slot 0
-    is zero, slot 1 one, then the series inputs ($t$, then the state's entries),
-    the per-lane parameters and the constants.
+    space*, each block's outputs consecutive slots; `perm` maps series space onto
+    order-0 space. Both start alike: slot 0 is zero, slot 1 one, then the series
+    inputs ($t$, then the state's entries), the per-lane parameters and the
+    constants (`values`). `outs`: the slots of $f$'s entries (series space).
 
-    - `values` `(S,)`: each slot's order-0 value where it is a constant;
-        `inputs` `(m,)`, `params` `(p,)`: their slots; `outs` `(m - 1,)`: $f$'s
-        entries (series space);
-    - order 0, per block: `fam0` `(B0,)` its family, `op0` `(B0, G0)` the opcodes
-        and `args0` `(B0, G0, 3)` the operands (order-0 space); `seg0` `(F + 1,)`
-        the blocks before each factorization; `fac_m` `(F, n^2)` each mass matrix's
-        entries (row-major, padded with the identity), `fac_dst` `(F, n^2)` where
-        its inverse's entries go (flat indices `4 slot + c` into the coefficients)
-        and `fac_ok` `(F,)` its verdict's slot;
-    - orders $\ge 1$, per block: `gat` `(B1, 3 Gc + 2 Gl)` the operands (series
-        space: the Cauchy nodes' $X$, $P$, $Q$, the linear nodes' $X$, $Y$) and
-        `rows` `(B1,)` its first row of the histories; `hist` `(2, H)` the slots
-        whose histories the Cauchy sums read (each row's $P$ and $Q$);
-    - `blocks` `(2,)`: the blocks in use at order 0 and above.
+    Order 0: `lev0[level, family]` the range of that family's blocks (`op0`,
+    `arg0` the operands in order-0 space, `out0` the first output and count,
+    `prm0` the affine coefficients); `seg0` the levels before each factorization
+    (`fac_m` its matrix's entries, padded with the identity; `fac_dst` where its
+    inverse's entries go, as flat indices into the per-lane coefficients; `fac_ok`
+    its verdict's slot).
+
+    Orders $\ge 1$: `lev1[level]` the ranges of its Cauchy, constant-linear and
+    per-lane-linear blocks: `cgat`, `sgat`, `dgat` their operands, `cout` (first
+    output, first history row), `sout`, `dout`; `cst`, `sst` their constant
+    coefficients; `hist` the slots whose histories the Cauchy sums read (each
+    row's $P$ and $Q$). `blocks`: the levels in use at order 0 and above.
     """
 
     values: jax.Array
@@ -219,41 +200,86 @@ class CompactTape(eqx.Module):
     params: jax.Array
     outs: jax.Array
     perm: jax.Array
-    head: jax.Array
-    fam0: jax.Array
+    lev0: jax.Array
     op0: jax.Array
-    args0: jax.Array
-    base0: jax.Array
+    arg0: jax.Array
+    out0: jax.Array
+    prm0: jax.Array
     seg0: jax.Array
     fac_m: jax.Array
     fac_dst: jax.Array
     fac_ok: jax.Array
-    gat: jax.Array
-    base1: jax.Array
+    cgat: jax.Array
+    cout: jax.Array
+    cst: jax.Array
+    sgat: jax.Array
+    sout: jax.Array
+    sst: jax.Array
+    dgat: jax.Array
+    dout: jax.Array
     hist: jax.Array
+    seq1: jax.Array
     blocks: jax.Array
-    Gc: int = eqx.field(static=True)
-    Gl: int = eqx.field(static=True)
+    families: tuple = eqx.field(static=True)
+    caps0: tuple = eqx.field(static=True)  # (order-0 blocks per family)
 
     @property
     def size(self):
-        """The shapes the compiled program is specialized to."""
-        return tuple(
+        """What the compiled program is specialized to: the arrays' shapes and the
+        order-0 families present."""
+        shapes = tuple(
             (name, getattr(self, name).shape)
-            for name in ("values", "inputs", "params", "op0", "fac_m", "gat", "hist")
-        ) + (("G", (self.Gc, self.Gl)),)
+            for name in (
+                "values", "inputs", "params", "lev0", "op0", "fac_m", "cgat",
+                "sgat", "dgat", "hist", "seq1",
+            )
+        )  # fmt: skip
+        return shapes + (("families", self.families), ("caps0", self.caps0))
+
+    def sizes(self) -> dict:
+        """The smallest sizes (`build`'s `size`) that give another tape this one's
+        size class, or a class that holds both (`join`)."""
+        out = dict(
+            S=self.values.shape[0],
+            L0=self.lev0.shape[0],
+            n=math.isqrt(self.fac_m.shape[1]) if self.fac_m.shape[1] > 1 else 0,
+            F=self.fac_m.shape[0] if self.fac_m.shape[1] > 1 else 0,
+            H=self.hist.shape[1],
+            p=self.params.shape[0],
+            NB=self.seq1.shape[0],
+            B1cau=self.cgat.shape[0],
+            B1slin=self.sgat.shape[0],
+            B1dlin=self.dgat.shape[0],
+            families=self.families,
+        )
+        out.update({f"B0{f}": cap for f, cap in zip(self.families, self.caps0)})
+        return out
+
+
+def join(*sizes) -> dict:
+    """The smallest sizes that hold each of `sizes` (`CompactTape.sizes`)."""
+    out = {}
+    for size in sizes:
+        for key, value in size.items():
+            if key == "families":
+                out[key] = tuple(sorted(set(out.get(key, ())) | set(value)))
+            else:
+                out[key] = max(out.get(key, 0), value)
+    return out
 
 
 # --- building -------------------------------------------------------------------------
 
 
 class _CNode:
-    __slots__ = ("op", "args", "out", "form", "lvl0", "lvl1", "deps0")
+    __slots__ = ("op", "args", "out", "form", "lvl0", "lvl1", "coef", "affine")
 
     def __init__(self, op, args, out):
         self.op = op
         self.args = tuple(args)  # ids (a, b, c), None where absent
         self.out = out
+        self.coef = _OPS[op][3]
+        self.affine = _AFFINE.get(op)
 
 
 class _Factor:
@@ -264,6 +290,7 @@ class _Factor:
 
     def __init__(self, M, dst, ok, n):
         self.M, self.dst, self.ok, self.n = M, dst, ok, n
+        self.lvl0 = None
 
 
 def _bucket(n, smallest=1):
@@ -277,16 +304,16 @@ class _Builder:
     def __init__(self, prog, inputs, params, outs):
         self.prog = prog
         self.series = set(prog.series)
-        self.nodes = []  # _CNode
+        self.nodes = []
         self.factors = []
         self.alias = {}
-        self.extra_consts = {}  # id -> value
+        self.consts = dict(prog.consts)
         self.next = prog._next
         self.inputs = list(inputs)
         self.params = list(params)
         self.outs = list(outs)
-        for avals in prog.avals.values():
-            if int(np.prod(avals.shape)) != 1:
+        for aval in prog.avals.values():
+            if int(np.prod(aval.shape)) != 1:
                 raise NotImplementedError("the compact program holds scalars only")
         self.one = self.const(1.0)
         for node in prog.nodes:
@@ -298,21 +325,26 @@ class _Builder:
 
     def const(self, value):
         i = self.new()
-        self.extra_consts[i] = float(value)
+        self.consts[i] = float(value)
         return i
+
+    def literal(self, i):
+        """The value of `i` where it is a concrete constant, else None."""
+        v = self.consts.get(self.id(i))
+        if v is None or isinstance(v, jax.core.Tracer) or np.size(v) != 1:
+            return None
+        return float(np.asarray(v).reshape(()))
 
     def id(self, i):
         while i in self.alias:
             i = self.alias[i]
         return i
 
-    def is_series(self, i):
-        return self.id(i) in self.series
-
     def emit(self, op, args, out=None, series=None):
         out = self.new() if out is None else out
         args = [None if a is None else self.id(a) for a in args]
-        self.nodes.append(_CNode(op, args, out))
+        node = _CNode(op, args, out)
+        self.nodes.append(node)
         if series is None:
             series = any(a is not None and a in self.series for a in args)
         if series and _OPS[op][1] is not None:
@@ -328,8 +360,6 @@ class _Builder:
         ser = [i in self.series for i in ins]
         if kind in _ALIAS:
             self.alias[outs[0]] = ins[0]
-            if ins[0] in self.series:
-                self.series.add(outs[0])
             return
         if kind in ("sincos", "sinhcosh"):
             s, c = outs
@@ -345,14 +375,26 @@ class _Builder:
                 self.emit("mul", ins, out)
             elif ser[0] or ser[1]:
                 u, w = ins if ser[0] else ins[::-1]
-                self.emit("scale", [u, w], out)
+                lit = self.literal(w)
+                if lit is None:
+                    self.emit("scale", [u, w], out)
+                else:
+                    self.emit("scalec", [u, w], out)
+                    self.nodes[-1].coef = (lit, 0.0)
+                    self.nodes[-1].affine = (lit, 0.0, 0.0)
             else:
                 self.emit("mul", ins, out, series=False)
         elif kind == "div":
             if ser[0] and ser[1]:
                 self.emit("div", ins, out)
             elif ser[0]:
-                self.emit("divc", ins, out)
+                lit = self.literal(ins[1])
+                if lit is None:
+                    self.emit("divc", ins, out)
+                else:
+                    self.emit("scalec", ins, out)
+                    self.nodes[-1].coef = (1.0 / lit, 0.0)
+                    self.nodes[-1].affine = (1.0 / lit, 0.0, 0.0)
             elif ser[1]:
                 self.emit("rdiv", ins, out)
             else:
@@ -390,7 +432,9 @@ class _Builder:
             self.emit("min", [m, hi], out)
         elif kind == "rem":
             if ser[1]:
-                raise NotImplementedError("rem with a divisor that depends on the state")
+                raise NotImplementedError(
+                    "rem with a divisor that depends on the state"
+                )
             self.emit("rem", ins, out)
         elif kind in _SAME:
             self.emit(kind, ins, out)
@@ -411,11 +455,11 @@ class _Builder:
                 for b in range(n)
                 if M[a * n + b] in self.series
             ]
-            acc = r[a]
-            if terms:
-                total = self._tree(terms)
-                acc = self.emit("sub", [r[a], total], series=True)
-            s.append(acc)
+            s.append(
+                self.emit("sub", [r[a], self._tree(terms)], series=True)
+                if terms
+                else r[a]
+            )
         dst = []
         for a in range(n):
             leaves = []
@@ -423,9 +467,7 @@ class _Builder:
                 pair = [s[b], s[b + 1] if b + 1 < n else None]
                 leaf = self.emit("lincomb", pair, series=True)
                 leaves.append(leaf)
-                dst.append((leaf, 0))
-                if b + 1 < n:
-                    dst.append((leaf, 1))
+                dst += [(leaf, 0)] + ([(leaf, 1)] if b + 1 < n else [])
             self._tree(leaves, out=xs[a])
         self.factors.append(_Factor(list(M), dst, ok, n))
 
@@ -449,23 +491,17 @@ class _Builder:
 
 
 def _form_operands(node):
-    """The form's operand ids `(X, P, Q)` or `(X, Y)` (None: the zero slot)."""
-    family, form, names = _OPS[node.op]
+    """The form's operand ids, `(X, P, Q)` or `(X, Y)` (None: the zero slot)."""
     where = dict(zip("abc", node.args), o=node.out)
     where["-"] = None
-    return [where.get(name) for name in names]
+    return [where.get(name) for name in _OPS[node.op][2]]
 
 
 def _levels(b):
     """Order-0 levels (every operand, and a factorization before its combinations)
     and levels at orders >= 1 (the operands each form needs at the same order)."""
     lvl0, lvl1 = {}, {}
-    fac_of = {}
-    for f in b.factors:
-        for node_id, _ in f.dst:
-            fac_of[node_id] = f
-    for f in b.factors:
-        f.lvl0 = None
+    fac_of = {node_id: f for f in b.factors for node_id, _ in f.dst}
     for node in b.nodes:
         deps = [lvl0.get(a, 0) for a in node.args if a is not None]
         f = fac_of.get(node.out)
@@ -477,26 +513,36 @@ def _levels(b):
         node.lvl0 = 1 + max(deps + [0])
         lvl0[node.out] = node.lvl0
         node.form = _OPS[node.op][1] if node.out in b.series else None
+        if node.form == "slin" and node.op not in _AFFINE and node.coef is None:
+            node.form = "dlin"
         if node.form is None:
             continue
-        operands = _form_operands(node)
         needs = _NEEDS.get(node.op, (True, True, True))
         deps = [
             lvl1.get(i, 0)
-            for i, need in zip(operands, needs)
+            for i, need in zip(_form_operands(node), needs)
             if i is not None and i != node.out and need
         ]
         node.lvl1 = 1 + max(deps + [0])
         lvl1[node.out] = node.lvl1
 
 
+def _family(node):
+    fam = _OPS[node.op][0]
+    return fam
+
+
 def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
     """The `CompactTape` of a flattened program: `inputs` (ids of $t$ and the
     state's entries), `params` (per-lane parameter ids), `outs` ($f$'s ids).
-    `size`: a dict of smallest sizes to pad to."""
+    `size`: a dict of smallest sizes to pad to.
+
+    **Raises:** `NotImplementedError` where a variable has more than one entry, a
+    primitive has no opcode, or a constant is not concrete."""
     b = _Builder(prog, inputs, params, outs)
     _levels(b)
     dtype = np.dtype(dtype)
+    minimum = dict(size or {})
     # --- slots common to both spaces: zero, one, inputs, parameters, constants
     fixed = {b.one: 1}
     values = {0: 0.0, 1: 1.0}
@@ -504,9 +550,7 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
     for i in b.inputs + b.params:
         fixed[i] = nxt
         nxt += 1
-    consts = dict(prog.consts)
-    consts.update(b.extra_consts)
-    for i, v in consts.items():
+    for i, v in b.consts.items():
         if i in fixed:
             continue
         if isinstance(v, jax.core.Tracer):
@@ -518,52 +562,81 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
         values[nxt] = v.reshape(()).item()
         nxt += 1
     head = nxt
-    # --- order 0: blocks of one level and family, the factorizations between
+    get0 = get1 = None  # (set below)
+
+    # --- order 0: per level, blocks of one family; factorizations between levels
+    fams = sorted({_family(nd) for nd in b.nodes})
     by0 = {}
     for nd in b.nodes:
-        by0.setdefault((nd.lvl0, _OPS[nd.op][0]), []).append(nd)
-    factors = sorted(range(len(b.factors)), key=lambda f: b.factors[f].lvl0)
-    blocks0, seg0 = [], []
-    fi = 0
-    for lvl, fam in sorted(by0):
-        while fi < len(factors) and b.factors[factors[fi]].lvl0 < lvl:
-            seg0.append(len(blocks0))
-            fi += 1
-        nodes = by0[lvl, fam]
-        for i in range(0, len(nodes), G0):
-            blocks0.append((fam, nodes[i : i + G0]))
-    seg0 += [len(blocks0)] * (len(factors) - fi + 1)
+        by0.setdefault(nd.lvl0, {}).setdefault(_family(nd), []).append(nd)
+    levels0 = sorted(by0)
+    blocks0 = {f: [] for f in range(len(_FAMILY_NAMES))}
+    lev0 = []
+    for lvl in levels0:
+        row = []
+        for f in range(len(_FAMILY_NAMES)):
+            nodes = by0[lvl].get(f, [])
+            start = len(blocks0[f])
+            if f in _ONE_OPCODE:
+                groups = {}
+                for nd in nodes:
+                    groups.setdefault(nd.op, []).append(nd)
+            else:
+                groups = {None: nodes}
+            for group in groups.values():
+                blocks0[f] += [group[i : i + G0] for i in range(0, len(group), G0)]
+            row.append((start, len(blocks0[f])))
+        lev0.append(row)
+    order = sorted(range(len(b.factors)), key=lambda i: b.factors[i].lvl0)
+    seg0 = [sum(lvl < b.factors[i].lvl0 + 1 for lvl in levels0) for i in order]
+    seg0.append(len(levels0))
     slot0 = dict(fixed)
     cur = head
-    base0 = []
-    for fam, nodes in blocks0:
-        base0.append((cur, len(nodes)))
-        for j, nd in enumerate(nodes):
-            slot0[nd.out] = cur + j
-        cur += len(nodes)
+    for lvl_i, lvl in enumerate(levels0):
+        for f in range(len(_FAMILY_NAMES)):
+            start, end = lev0[lvl_i][f]
+            for nodes in blocks0[f][start:end]:
+                for j, nd in enumerate(nodes):
+                    slot0[nd.out] = cur + j
+                cur += len(nodes)
     for f in b.factors:
         slot0[f.ok] = cur
         cur += 1
     used0 = cur
-    # --- orders >= 1: per level, blocks of Gc Cauchy and Gl linear nodes
+
+    # --- orders >= 1: per level, blocks of each form
+    # Kinds of block: Cauchy (plain sum, weighted sum, both), linear (constant,
+    # per-lane coefficients); a sequence of (kind, block) level by level.
+    forms = ("cau", "slin", "dlin")
     by1 = {}
     for nd in b.nodes:
         if nd.form is not None:
-            by1.setdefault(nd.lvl1, ([], []))[nd.form == "lin"].append(nd)
-    blocks1 = []
-    for lvl in sorted(by1):
-        cs, ls = by1[lvl]
-        for i in range(max(-(-len(cs) // Gc), -(-len(ls) // Gl))):
-            blocks1.append((cs[i * Gc : (i + 1) * Gc], ls[i * Gl : (i + 1) * Gl]))
+            kind = _SUMS[nd.op] if nd.form == "cau" else 2 + forms.index(nd.form)
+            by1.setdefault(nd.lvl1, {}).setdefault(kind, []).append(nd)
+    levels1 = sorted(by1)
+    blocks1 = {form: [] for form in forms}
+    seq = []
     slot1 = dict(fixed)
-    rows, cur = 0, head
-    base1 = []
-    for cs, ls in blocks1:
-        base1.append((cur, cur + len(cs), rows))
-        for j, nd in enumerate(cs + ls):
-            slot1[nd.out] = cur + j
-        cur += len(cs) + len(ls)
-        rows += len(cs)
+    cur, rows = head, 0
+    firsts = {form: [] for form in forms}
+    for lvl in levels1:
+        for kind in sorted(by1[lvl]):
+            nodes = by1[lvl][kind]
+            form = "cau" if kind < 3 else forms[kind - 2]
+            G = Gc if form == "cau" else Gl
+            for i in range(0, len(nodes), G):
+                group = nodes[i : i + G]
+                seq.append((kind, len(blocks1[form])))
+                blocks1[form].append(group)
+                firsts[form].append((cur, rows))
+                for j, nd in enumerate(group):
+                    slot1[nd.out] = cur + j
+                cur += len(group)
+                if form == "cau":
+                    rows += len(group)
+    # (A block writes a full block of rows: the last one's padding lands before
+    # the slots that stay zero above order 0.)
+    cur += max(Gc, Gl)
     for nd in b.nodes:
         if nd.out not in slot1:
             slot1[nd.out] = cur
@@ -572,39 +645,59 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
         slot1[f.ok] = cur
         cur += 1
     used1 = cur
+
     # --- sizes (the size class)
-    minimum = dict(size or {})
     NM = max([f.n for f in b.factors] + [minimum.get("n", 0)])
     F = max(len(b.factors), minimum.get("F", 0))
-    B0 = _bucket(len(blocks0), minimum.get("B0", 4))
-    B1 = _bucket(len(blocks1), minimum.get("B1", 4))
-    # (Each block writes a full block of rows from its first output.)
-    S = _bucket(max(used0, used1) + max(G0, Gc + Gl) + 1, minimum.get("S", 64))
+    S = _bucket(max(used0, used1) + max(G0, Gc, Gl) + 1, minimum.get("S", 64))
+    L0 = _bucket(len(levels0), minimum.get("L0", 4))
+    B0 = {f: _bucket(len(blocks0[f]), minimum.get(f"B0{f}", 1)) for f in fams}
+    B1 = {
+        form: _bucket(len(blocks1[form]), minimum.get(f"B1{form}", 1)) for form in forms
+    }
     H = _bucket(rows + Gc, minimum.get("H", 16))
     P = max(len(b.params), minimum.get("p", 0))
+    fams = tuple(sorted(set(fams) | set(minimum.get("families", ()))))
+    for f in fams:
+        B0.setdefault(f, _bucket(len(blocks0[f]), minimum.get(f"B0{f}", 1)))
     dummy = S - 1
     s0 = lambda i: 0 if i is None else slot0[b.id(i)]
     s1 = lambda i: 0 if i is None else slot1[b.id(i)]
+    del get0, get1
+
     vals = np.zeros((S,), dtype)
     for s_, v in values.items():
         vals[s_] = v
     perm = np.zeros((S,), np.int32)
     for i, s_ in slot1.items():
         perm[s_] = slot0[i]
-    fam0 = np.zeros((B0,), np.int32)
-    op0 = np.full((B0, G0), OPCODE["zero"], np.int32)
-    args0 = np.zeros((B0, G0, 3), np.int32)
-    b0 = np.zeros((B0, 2), np.int32)
-    for bi, (fam, nodes) in enumerate(blocks0):
-        fam0[bi] = fam
-        b0[bi] = base0[bi]
-        for j, nd in enumerate(nodes):
-            op0[bi, j] = OPCODE[nd.op]
-            args0[bi, j] = [s0(a) for a in (nd.args + (None,) * 3)[:3]]
+    # Order 0: the families' blocks concatenated, `lev0` offset to match.
+    nF = len(fams)
+    offs = np.cumsum([0] + [B0[f] for f in fams])
+    B0t = int(offs[-1])
+    lev = np.zeros((L0, nF, 2), np.int32)
+    op0 = np.full((B0t, G0), OPCODE["zero"], np.int32)
+    arg0 = np.zeros((B0t, G0, 3), np.int32)
+    out0 = np.zeros((B0t, 2), np.int32)
+    out0[:, 0] = used0  # (unused blocks write past the slots in use)
+    prm0 = np.zeros((B0t, 3, G0), dtype)
+    for lvl_i in range(len(levels0)):
+        for fi, f in enumerate(fams):
+            start, end = lev0[lvl_i][f]
+            lev[lvl_i, fi] = (offs[fi] + start, offs[fi] + end)
+    for fi, f in enumerate(fams):
+        for bi, nodes in enumerate(blocks0[f]):
+            row = offs[fi] + bi
+            out0[row] = (slot0[nodes[0].out], len(nodes))
+            for j, nd in enumerate(nodes):
+                op0[row, j] = OPCODE[nd.op]
+                arg0[row, j] = [s0(a) for a in (nd.args + (None,) * 3)[:3]]
+                if nd.affine is not None:
+                    prm0[row, :, j] = nd.affine
     fac_m = np.zeros((max(F, 1), max(NM, 1) ** 2), np.int32)
-    fac_dst = np.full((max(F, 1), max(NM, 1) ** 2), 4 * S, np.int32)  # (dropped)
+    fac_dst = np.full((max(F, 1), max(NM, 1) ** 2), 2 * S, np.int32)  # (dropped)
     fac_ok = np.full((max(F, 1),), dummy, np.int32)
-    for row, fi in enumerate(factors):
+    for row, fi in enumerate(order):
         f = b.factors[fi]
         for r_ in range(NM):
             for c_ in range(NM):
@@ -614,25 +707,41 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
                     fac_m[row, r_ * NM + c_] = 1  # (the identity beyond n)
         for e, (node_id, c_) in enumerate(f.dst):
             r_, q_ = divmod(e, f.n)
-            fac_dst[row, r_ * NM + q_] = 4 * slot0[node_id] + c_
+            fac_dst[row, r_ * NM + q_] = 2 * slot0[node_id] + c_
         fac_ok[row] = slot0[f.ok]
-    gat = np.zeros((B1, 3 * Gc + 2 * Gl), np.int32)
-    b1 = np.full((B1, 3), (used1, used1, rows), np.int32)
+    # Orders >= 1.
+    cgat = np.zeros((B1["cau"], 3, Gc), np.int32)
+    cout = np.full((B1["cau"], 2), (used1, rows), np.int32)
+    cst = np.zeros((B1["cau"], 2, Gc), dtype)
+    sgat = np.zeros((B1["slin"], 2, Gl), np.int32)
+    sout = np.full((B1["slin"],), used1, np.int32)
+    sst = np.zeros((B1["slin"], 2, Gl), dtype)
+    dgat = np.zeros((B1["dlin"], 2, Gl), np.int32)
+    dout = np.full((B1["dlin"],), used1, np.int32)
     hist = np.zeros((2, H), np.int32)
-    for bi, (cs, ls) in enumerate(blocks1):
-        b1[bi] = base1[bi]
-        for j, nd in enumerate(cs):
+    for bi, nodes in enumerate(blocks1["cau"]):
+        cout[bi] = firsts["cau"][bi]
+        for j, nd in enumerate(nodes):
             ops = _form_operands(nd)
             x, p_, q_ = (s1(i) for i in ops)
-            hist[:, base1[bi][2] + j] = (p_, q_)
+            hist[:, firsts["cau"][bi][1] + j] = (p_, q_)
             # This order's P and Q where the sum needs them; zero where they are
             # the node itself (still unknown) or weigh nothing at this order.
             needs = _NEEDS.get(nd.op, (True, True, True))
             now = [s1(i) if need and i != nd.out else 0 for i, need in zip(ops, needs)]
-            gat[bi, [j, Gc + j, 2 * Gc + j]] = (x, now[1], now[2])
-        for j, nd in enumerate(ls):
-            x, y = (s1(i) for i in _form_operands(nd))
-            gat[bi, [3 * Gc + j, 3 * Gc + Gl + j]] = (x, y)
+            cgat[bi, :, j] = (x, now[1], now[2])
+            cst[bi, :, j] = nd.coef
+    for bi, nodes in enumerate(blocks1["slin"]):
+        sout[bi] = firsts["slin"][bi][0]
+        for j, nd in enumerate(nodes):
+            sgat[bi, :, j] = [s1(i) for i in _form_operands(nd)]
+            sst[bi, :, j] = nd.coef
+    for bi, nodes in enumerate(blocks1["dlin"]):
+        dout[bi] = firsts["dlin"][bi][0]
+        for j, nd in enumerate(nodes):
+            dgat[bi, :, j] = [s1(i) for i in _form_operands(nd)]
+    seq1 = np.zeros((_bucket(len(seq), minimum.get("NB", 4)), 2), np.int32)
+    seq1[: len(seq)] = seq
     P_arr = np.full((P,), dummy, np.int32)
     P_arr[: len(b.params)] = [fixed[b.id(i)] for i in b.params]
     as_i = lambda x: jnp.asarray(x, jnp.int32)
@@ -642,134 +751,177 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
         params=as_i(P_arr),
         outs=as_i([s1(i) for i in b.outs]),
         perm=as_i(perm),
-        head=as_i(head),
-        fam0=as_i(fam0),
+        lev0=as_i(lev),
         op0=as_i(op0),
-        args0=as_i(args0),
-        base0=as_i(b0),
+        arg0=as_i(arg0),
+        out0=as_i(out0),
+        prm0=jnp.asarray(prm0),
         seg0=as_i(seg0),
         fac_m=as_i(fac_m),
         fac_dst=as_i(fac_dst),
         fac_ok=as_i(fac_ok),
-        gat=as_i(gat),
-        base1=as_i(b1),
+        cgat=as_i(cgat),
+        cout=as_i(cout),
+        cst=jnp.asarray(cst),
+        sgat=as_i(sgat),
+        sout=as_i(sout),
+        sst=jnp.asarray(sst),
+        dgat=as_i(dgat),
+        dout=as_i(dout),
         hist=as_i(hist),
-        blocks=as_i([len(blocks0), len(blocks1)]),
-        Gc=Gc,
-        Gl=Gl,
+        seq1=as_i(seq1),
+        blocks=as_i([len(levels0), len(seq)]),
+        families=fams,
+        caps0=tuple(B0[f] for f in fams),
     )
 
 
-# --- the program ---------------------------------------------------------------------
+# --- order 0 --------------------------------------------------------------------------
 
 
-def _common(op, a, b, c, coef):
-    """Order-0 value and coefficients `(c0, c1, c2, c3)` of the common opcodes:
-    every one computed, the node's picked (cheap elementwise work, once a step)."""
-    one, zero = jnp.ones_like(a), jnp.zeros_like(a)
-    p = (a != 0).astype(a.dtype)
-    lin = lambda c0, c1: (c0, c1, zero, zero)
-    table = {
-        "zero": (zero, (zero, one, zero, one)),
-        "copy": (a, lin(one, zero)),
-        "add": (a + b, lin(one, one)),
-        "sub": (a - b, lin(one, -one)),
-        "neg": (-a, lin(-one, zero)),
-        "mul": (a * b, (zero, one, zero, one)),
-        "scale": (a * b, lin(b, zero)),
-        "select": (jnp.where(a != 0, c, b), lin(one - p, p)),
-        "lincomb": (coef[0] * a + coef[1] * b, lin(coef[0], coef[1])),
-    }
-    return _pick(op, table, coef)
+def _pick(op, table, value, d0, d1):
+    """The row of `table` whose opcode is `op` (per node): a chain of selects (other
+    opcodes keep `value`, `d0`, `d1`). Each row: `(value, (d0, d1) or None)`."""
+    for name, (v, ds) in table.items():
+        hit = op == OPCODE[name]
+        value = v if value is None else jnp.where(hit, v, value)
+        if ds is not None:
+            d0 = jnp.where(hit, ds[0], d0)
+            d1 = jnp.where(hit, ds[1], d1)
+    return value, d0, d1
 
 
-def _rare(op, a, b, c, coef):
-    one, zero = jnp.ones_like(a), jnp.zeros_like(a)
-    flt = lambda m: m.astype(a.dtype)
-    rb = 1.0 / b
-    mx, mn = flt(a >= b), flt(a <= b)
-    lin = lambda c0, c1: (c0, c1, zero, zero)
-    table = {
-        "div": (a * rb, (one, -one, zero, rb)),
-        "divc": (a * rb, lin(rb, zero)),
-        "rdiv": (a * rb, (zero, -one, zero, rb)),
-        "abs": (jnp.abs(a), lin(jnp.where(a >= 0, one, -one), zero)),
-        "max": (jnp.maximum(a, b), lin(mx, one - mx)),
-        "min": (jnp.minimum(a, b), lin(mn, one - mn)),
-        "rem": (lax.rem(a, b), lin(one, zero)),
-        "sq1p": (one + a * a, (zero, one, zero, one)),
-        "sq1m": (one - a * a, (zero, -one, zero, one)),
-        "logw": (a - a * a, (one, -one, zero, one)),
-    }
-    return _pick(op, table, coef)
+def _affine(op, prm, a, b, c, d0, d1, trig):
+    # (Cauchy nodes here have d = 1, e = 0; linear ones constant coefficients.)
+    one = jnp.ones_like(a)
+    return prm[0] * a + prm[1] * b + prm[2] * (a * b), one, 0.0 * one
 
 
-def _logic(op, a, b, c, coef):
-    truth = lambda x: x != 0
-    flt = lambda m: m.astype(a.dtype)
-    table = {
-        "lt": (flt(a < b), None),
-        "le": (flt(a <= b), None),
-        "gt": (flt(a > b), None),
-        "ge": (flt(a >= b), None),
-        "eq": (flt(a == b), None),
-        "ne": (flt(a != b), None),
-        "and": (flt(truth(a) & truth(b)), None),
-        "or": (flt(truth(a) | truth(b)), None),
-        "not": (flt(~truth(a)), None),
-        "xor": (flt(truth(a) ^ truth(b)), None),
-        "is_finite": (flt(jnp.isfinite(a)), None),
-        "sign": (jnp.sign(a), None),
-        "floor": (jnp.floor(a), None),
-        "ceil": (jnp.ceil(a), None),
-        "round": (jnp.round(a), None),
-    }
-    return _pick(op, table, coef)
+def _flt(m, like):
+    return m.astype(like.dtype)
 
 
-def _trans(op, a, b, c, coef, trig):
-    one, zero = jnp.ones_like(a), jnp.zeros_like(a)
+def _one(a):
+    return jnp.ones_like(a)
+
+
+# Per opcode of the rare families: `(a, b, c, d0, d1) -> (value, (d0, d1) or None)`
+# (None: the per-lane coefficients stay as they are).
+_RARE_FNS = {
+    "div": lambda a, b, c, d0, d1: (a / b, (1.0 / b, 0.0 * a)),
+    "rdiv": lambda a, b, c, d0, d1: (a / b, (1.0 / b, 0.0 * a)),
+    "divc": lambda a, b, c, d0, d1: (a / b, (1.0 / b, 0.0 * a)),
+    "scale": lambda a, b, c, d0, d1: (a * b, (b, 0.0 * a)),
+    "abs": lambda a, b, c, d0, d1: (
+        jnp.abs(a),
+        (jnp.where(a >= 0, _one(a), -_one(a)), 0.0 * a),
+    ),
+    "max": lambda a, b, c, d0, d1: (
+        jnp.maximum(a, b),
+        (_flt(a >= b, a), 1.0 - _flt(a >= b, a)),
+    ),
+    "min": lambda a, b, c, d0, d1: (
+        jnp.minimum(a, b),
+        (_flt(a <= b, a), 1.0 - _flt(a <= b, a)),
+    ),
+    "select": lambda a, b, c, d0, d1: (
+        jnp.where(a != 0, c, b),
+        (1.0 - _flt(a != 0, a), _flt(a != 0, a)),
+    ),
+    "lincomb": lambda a, b, c, d0, d1: (d0 * a + d1 * b, None),
+    "rem": lambda a, b, c, d0, d1: (lax.rem(a, b), None),
+    "sq1p": lambda a, b, c, d0, d1: (1.0 + a * a, (_one(a), 0.0 * a)),
+    "sq1m": lambda a, b, c, d0, d1: (1.0 - a * a, (_one(a), 0.0 * a)),
+    "logw": lambda a, b, c, d0, d1: (a - a * a, (_one(a), 0.0 * a)),
+}
+_LOGIC_FNS = {
+    "lt": lambda a, b, c, d0, d1: (_flt(a < b, a), None),
+    "le": lambda a, b, c, d0, d1: (_flt(a <= b, a), None),
+    "gt": lambda a, b, c, d0, d1: (_flt(a > b, a), None),
+    "ge": lambda a, b, c, d0, d1: (_flt(a >= b, a), None),
+    "eq": lambda a, b, c, d0, d1: (_flt(a == b, a), None),
+    "ne": lambda a, b, c, d0, d1: (_flt(a != b, a), None),
+    "and": lambda a, b, c, d0, d1: (_flt((a != 0) & (b != 0), a), None),
+    "or": lambda a, b, c, d0, d1: (_flt((a != 0) | (b != 0), a), None),
+    "not": lambda a, b, c, d0, d1: (_flt(a == 0, a), None),
+    "xor": lambda a, b, c, d0, d1: (_flt((a != 0) ^ (b != 0), a), None),
+    "is_finite": lambda a, b, c, d0, d1: (_flt(jnp.isfinite(a), a), None),
+    "sign": lambda a, b, c, d0, d1: (jnp.sign(a), None),
+    "floor": lambda a, b, c, d0, d1: (jnp.floor(a), None),
+    "ceil": lambda a, b, c, d0, d1: (jnp.ceil(a), None),
+    "round": lambda a, b, c, d0, d1: (jnp.round(a), None),
+}
+
+
+def _sqrt_row(a, b, c, d0, d1):
+    r = jnp.sqrt(a)
+    return r, (0.5 / r, 0.0 * a)
+
+
+def _atan_row(a, b, c, d0, d1):
+    rw = 1.0 / (1.0 + a * a)
+    return jnp.arctan(a), (rw, -rw)
+
+
+_TRANS_FNS = {
+    "sinh": lambda a, b, c, d0, d1: (jnp.sinh(a), (_one(a), _one(a))),
+    "cosh": lambda a, b, c, d0, d1: (jnp.cosh(a), (_one(a), _one(a))),
+    "exp": lambda a, b, c, d0, d1: (jnp.exp(a), (_one(a), _one(a))),
+    "expm1": lambda a, b, c, d0, d1: (jnp.expm1(a), (_one(a), _one(a))),
+    "log": lambda a, b, c, d0, d1: (jnp.log(a), (1.0 / a, -1.0 / a)),
+    "log1p": lambda a, b, c, d0, d1: (
+        jnp.log1p(a),
+        (1.0 / (1.0 + a), -1.0 / (1.0 + a)),
+    ),
+    "sqrt": _sqrt_row,
+    "pow": lambda a, b, c, d0, d1: (a**b, (1.0 / a, (b + 1.0) / a)),
+    "tan": lambda a, b, c, d0, d1: (jnp.tan(a), (_one(a), _one(a))),
+    "tanh": lambda a, b, c, d0, d1: (jnp.tanh(a), (_one(a), _one(a))),
+    "atan": _atan_row,
+    "logistic": lambda a, b, c, d0, d1: (jax.nn.sigmoid(a), (_one(a), _one(a))),
+}
+
+
+def _switched(fns):
+    """A family whose blocks hold one opcode each: a switch on the block's opcode
+    evaluates that one only."""
+    names = list(fns)
+    branch = np.zeros((len(OPCODE),), np.int32)
+    for i, name in enumerate(names):
+        branch[OPCODE[name]] = i
+
+    def row(fn, a, b, c, d0, d1):
+        v, ds = fn(a, b, c, d0, d1)
+        return (v, d0, d1) if ds is None else (v, *ds)
+
+    def run(op, prm, a, b, c, d0, d1, trig):
+        index = jnp.asarray(branch)[op[0, 0]]
+        return lax.switch(
+            index, [functools.partial(row, fns[name]) for name in names],
+            a, b, c, d0, d1,
+        )  # fmt: skip
+
+    return run
+
+
+def _sincos(op, prm, a, b, c, d0, d1, trig):
+    one = jnp.ones_like(a)
     if trig and a.dtype == jnp.float64:
         s, co = _trig.sincos(a)
     else:
         s, co = jnp.sin(a), jnp.cos(a)
-    der = (zero, zero, one, one)  # (1/k) sum_j j P_j Q_{k-j}
-    r = jnp.sqrt(a)
-    w = one + a * a
-    table = {
-        "sin": (s, der),
-        "cos": (co, (zero, zero, -one, one)),
-        "sinh": (jnp.sinh(a), der),
-        "cosh": (jnp.cosh(a), der),
-        "exp": (jnp.exp(a), der),
-        "expm1": (jnp.expm1(a), (one, zero, one, one)),
-        "log": (jnp.log(a), (one, zero, -one, 1.0 / a)),
-        "log1p": (jnp.log1p(a), (one, zero, -one, 1.0 / (one + a))),
-        "sqrt": (r, (one, -one, zero, 1.0 / (2.0 * r))),
-        "pow": (a**b, (zero, -one, b + 1.0, 1.0 / a)),
-        "tan": (jnp.tan(a), der),
-        "tanh": (jnp.tanh(a), der),
-        "atan": (jnp.arctan(a), (one, zero, -one, 1.0 / w)),
-        "logistic": (jax.nn.sigmoid(a), der),
-    }
-    return _pick(op, table, coef)
+    is_sin = op == OPCODE["sin"]
+    return jnp.where(is_sin, s, co), one, jnp.where(is_sin, one, -one)
 
 
-def _pick(op, table, coef):
-    """The row of `table` whose opcode is `op` (per node): a chain of selects
-    (opcodes without coefficients keep `coef`)."""
-    value, coefs = None, list(coef)
-    for name, (v, cs) in table.items():
-        hit = op == OPCODE[name]
-        value = v if value is None else jnp.where(hit, v, value)
-        if cs is not None:
-            coefs = [jnp.where(hit, x, y) for x, y in zip(cs, coefs)]
-    return value, coefs
+_FAMILY_FNS = (_affine, _switched(_RARE_FNS), _switched(_LOGIC_FNS), _sincos,
+               _switched(_TRANS_FNS))  # fmt: skip
+_ONE_OPCODE = (RARE, LOGIC, TRANS)  # (families whose blocks hold one opcode)
 
 
-def _factor(tape, Y, C, row, NM):
-    """The inverse of one (padded) mass matrix at order 0, into the coefficients of
-    its combinations; its verdict into its slot."""
+def _factor(tape, Y, D, row, NM):
+    """The inverse of one (padded) mass matrix at order 0, into the per-lane
+    coefficients of its combinations; its verdict into its slot."""
     from .solve import _substitute, factor
 
     W = Y.shape[1]
@@ -782,94 +934,146 @@ def _factor(tape, Y, C, row, NM):
         cols.append(_substitute(Lf, inv, e, NM))
     # (factor works on sign * M, symmetrized: its inverse times sign is M's.)
     Minv = jnp.stack([sign * cols[c][r] for r in range(NM) for c in range(NM)])
-    flat = C.reshape((-1, W)).at[tape.fac_dst[row]].set(Minv, mode="drop")
+    flat = D.reshape((-1, W)).at[tape.fac_dst[row]].set(Minv, mode="drop")
     Y = Y.at[tape.fac_ok[row]].set(ok.astype(Y.dtype))
-    return Y, flat.reshape(C.shape)
+    return Y, flat.reshape(D.shape)
 
 
-def _order0(tape, Y, C, trig):
-    """Every node's value (order 0) and coefficients, block by block (order-0
-    space), each block's family chosen by a switch on its operands' values."""
+def _order0(tape, Y, D, trig):
+    """Every node's value (order 0) and per-lane coefficients (order-0 space),
+    level by level, each level's blocks by family."""
     G0 = tape.op0.shape[1]
     NM = math.isqrt(tape.fac_m.shape[1])
     W = Y.shape[1]
     i32 = lambda x: jnp.asarray(x, jnp.int32)
-    families = [_common, _rare, _logic, lambda *a: _trans(*a, trig)]
     rows = jnp.arange(G0)[:, None]
 
-    def block(bi, carry):
-        Y, C = carry
-        ops = tape.op0[bi][:, None]
-        args = tape.args0[bi]
-        start, n = tape.base0[bi, 0], tape.base0[bi, 1]
+    def block(bi, carry, fn):
+        Y, D = carry
+        op = tape.op0[bi][:, None]
+        args = tape.arg0[bi]
+        start, n = tape.out0[bi, 0], tape.out0[bi, 1]
         a, b_, c = (Y[args[:, i]] for i in range(3))
-        coef = lax.dynamic_slice(C, (start, i32(0), i32(0)), (G0, 4, W))
-        old = lax.dynamic_slice_in_dim(Y, start, G0, 0)
-        value, cs = lax.switch(
-            tape.fam0[bi],
-            [lambda *x, fn=fn: fn(*x) for fn in families],
-            ops, a, b_, c, [coef[:, i] for i in range(4)],
-        )  # fmt: skip
-        # Rows past the block's nodes keep what is there (a factorization's
-        # coefficients for a later block).
+        old_y = lax.dynamic_slice_in_dim(Y, start, G0, 0)
+        old_d = lax.dynamic_slice(D, (start, i32(0), i32(0)), (G0, 2, W))
+        prm = [tape.prm0[bi, i][:, None] for i in range(3)]
+        value, d0, d1 = fn(op, prm, a, b_, c, old_d[:, 0], old_d[:, 1], trig)
+        # Rows past the block's nodes keep what is there (another block's, or a
+        # factorization's coefficients).
         keep = rows < n
-        value = jnp.where(keep, value, old)
-        cs = jnp.where(keep[:, :, None], jnp.stack(cs, axis=1), coef)
+        value = jnp.where(keep, value, old_y)
+        d = jnp.where(keep[:, :, None], jnp.stack([d0, d1], axis=1), old_d)
         Y = lax.dynamic_update_slice(Y, value, (start, i32(0)))
-        C = lax.dynamic_update_slice(C, cs, (start, i32(0), i32(0)))
-        return Y, C
+        return Y, lax.dynamic_update_slice(D, d, (start, i32(0), i32(0)))
 
-    carry = (Y, C)
+    def level(lv, carry):
+        for fi, f in enumerate(tape.families):
+            fn = functools.partial(block, fn=_FAMILY_FNS[f])
+            carry = lax.fori_loop(tape.lev0[lv, fi, 0], tape.lev0[lv, fi, 1], fn, carry)
+        return carry
+
+    carry = (Y, D)
     F = tape.seg0.shape[0] - 1
     for f in range(F + 1):
         start = tape.seg0[f - 1] if f else 0
-        carry = lax.fori_loop(start, tape.seg0[f], block, carry)
+        carry = lax.fori_loop(start, tape.seg0[f], level, carry)
         if f < F and NM:
             carry = _factor(tape, *carry, f, NM)
     return carry
 
 
-def _order_k(tape, Y, Hp, Hq, C, k):
-    """Every series node's coefficient $k$ (series space), block by block: the
-    Cauchy sums from the histories of orders below $k$ and the values of order $k$
-    computed by earlier blocks (`Y`, zero where not yet computed)."""
-    Gc, Gl = tape.Gc, tape.Gl
+# --- orders >= 1 ----------------------------------------------------------------------
+
+
+def _segments(K, runs=2):
+    """The orders $1..K-1$ in `runs` runs `(first, end, window)`: each run one loop
+    whose Cauchy sums take `window` stored terms (the terms past $k - 1$ read
+    zeros): more runs sum fewer zeros and compile more loop bodies."""
+    runs = max(1, min(runs, (K - 1) // 3))
+    ends = sorted({1 + (K - 1) * (i + 1) // runs for i in range(runs)})
+    starts = [1] + ends[:-1]
+    return [(a, b, b - 1) for a, b in zip(starts, ends) if b > a]
+
+
+def _order_k(tape, Y, Hp, Hq, D, k, window):
+    """Every series node's coefficient $k$ (a traced int; series space), block by
+    block in the level order: the Cauchy sums from the stored orders below $k$ and
+    the values of order $k$ that earlier levels computed (`Y`). Each block's kind
+    is a switch whose branch returns the block's values (small operands, so that
+    `Y` is updated in place outside it)."""
+    Gc, Gl = tape.cgat.shape[2], tape.sgat.shape[2]
+    G = max(Gc, Gl)
     W = Y.shape[1]
+    K = Hp.shape[1]
     i32 = lambda x: jnp.asarray(x, jnp.int32)
-    jw = np.arange(k + 1, dtype=np.float64) / k
+    inv_k = 1.0 / k.astype(Y.dtype)
+    weights = [float(j) for j in range(window + 1)]
 
-    def block(bi, Y):
-        cs, ls, sb = (tape.base1[bi, i] for i in range(3))
-        G = Y[tape.gat[bi]]
-        X, Pk, Qk = G[:Gc], G[Gc : 2 * Gc], G[2 * Gc : 3 * Gc]
-        X0, X1 = G[3 * Gc : 3 * Gc + Gl], G[3 * Gc + Gl :]
-        P = lax.dynamic_slice(Hp, (sb, i32(0), i32(0)), (Gc, k, W))
-        Q = lax.dynamic_slice(Hq, (sb, i32(0), i32(0)), (Gc, k, W))
-        # sum_{j=0}^{k} P_j Q_{k-j}: the end terms from this order's values.
-        end = Pk * Q[:, 0]
-        s0 = P[:, 0] * Qk + end
-        s1 = end
-        for j in range(1, k):
-            term = P[:, j] * Q[:, k - j]
-            s0 = s0 + term
-            s1 = s1 + jw[j] * term
-        cc = lax.dynamic_slice(C, (cs, i32(0), i32(0)), (Gc, 4, W))
-        cl = lax.dynamic_slice(C, (ls, i32(0), i32(0)), (Gl, 2, W))
-        yc = cc[:, 3] * (cc[:, 0] * X + cc[:, 1] * s0 + cc[:, 2] * s1)
-        yl = cl[:, 0] * X0 + cl[:, 1] * X1
-        # (The linear nodes' rows follow the Cauchy nodes' and overwrite the
-        # padding of `yc`; theirs runs into the next block's, written later.)
-        Y = lax.dynamic_update_slice(Y, yc, (cs, i32(0)))
-        return lax.dynamic_update_slice(Y, yl, (ls, i32(0)))
+    def rows(y):
+        return (
+            y
+            if y.shape[0] == G
+            else jnp.concatenate([y, jnp.zeros((G - y.shape[0], W), y.dtype)])
+        )
 
-    return lax.fori_loop(0, tape.blocks[1], block, Y)
+    def cau(bi, Y, sums):
+        out, row = tape.cout[bi, 0], tape.cout[bi, 1]
+        X, Pk, Qk = (Y[tape.cgat[bi, i]] for i in range(3))
+        # P_j forward (j = 0..window); Q reversed (Hq[K - m] = q_m), so that the
+        # window from K - k holds q_{k-j} at j; zero past the orders stored.
+        P = lax.dynamic_slice(Hp, (row, i32(0), i32(0)), (Gc, window + 1, W))
+        Q = lax.dynamic_slice(Hq, (row, i32(K) - k, i32(0)), (Gc, window + 1, W))
+        Q0 = lax.dynamic_slice(Hq, (row, i32(K), i32(0)), (Gc, 1, W))[:, 0]
+        end = Pk * Q0  # (the term j = k)
+        s0 = s1 = None
+        if sums != 1:  # sum_j P_j Q_{k-j}
+            s0 = P[:, 0] * Qk + end
+            for j in range(1, window + 1):
+                s0 = s0 + P[:, j] * Q[:, j]
+        if sums != 0:  # (1/k) sum_j j P_j Q_{k-j}
+            s1 = 0.0
+            for j in range(1, window + 1):
+                s1 = s1 + weights[j] * (P[:, j] * Q[:, j])
+            s1 = end + s1 * inv_k
+        d = lax.dynamic_slice(D, (out, i32(0), i32(0)), (Gc, 2, W))
+        c = tape.cst[bi]
+        lin = c[0][:, None] * X
+        if s0 is not None:
+            lin = lin + c[1][:, None] * s0
+        y = d[:, 0] * lin
+        if s1 is not None:
+            y = y + d[:, 1] * s1
+        return rows(y), out
+
+    def slin(bi, Y):
+        X0, X1 = Y[tape.sgat[bi, 0]], Y[tape.sgat[bi, 1]]
+        c = tape.sst[bi]
+        return rows(c[0][:, None] * X0 + c[1][:, None] * X1), tape.sout[bi]
+
+    def dlin(bi, Y):
+        out = tape.dout[bi]
+        X0, X1 = Y[tape.dgat[bi, 0]], Y[tape.dgat[bi, 1]]
+        d = lax.dynamic_slice(D, (out, i32(0), i32(0)), (Gl, 2, W))
+        return rows(d[:, 0] * X0 + d[:, 1] * X1), out
+
+    branches = [functools.partial(cau, sums=i) for i in range(3)] + [slin, dlin]
+
+    def step(i, Y):
+        y, out = lax.switch(tape.seq1[i, 0], branches, tape.seq1[i, 1], Y)
+        return lax.dynamic_update_slice(Y, y, (out, i32(0)))
+
+    return lax.fori_loop(0, tape.blocks[1], step, Y)
 
 
-def compact_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False):
+def compact_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False, runs=2):
     r"""The Taylor coefficients $y_0..y_K$ of $y' = f(t, y)$ about $(t, y)$ from the
     tape of $f$'s program: `ys` the state's entries (a list of `(W,)` arrays, the
     order of the tape's inputs after $t$), `params` the per-lane parameters (`(W,)`
-    arrays). Returns one list of `K + 1` arrays `(W,)` per entry."""
+    arrays). Returns one list of `K + 1` arrays `(W,)` per entry.
+
+    `trig`: float64 sines and cosines at order 0 by `lagrax._jaxpr.trig.sincos`
+    (vectorized) instead of the C library's. `runs`: the loops over orders
+    (`_segments`)."""
     W = t.shape[0]
     dtype = t.dtype
     S = tape.values.shape[0]
@@ -883,25 +1087,40 @@ def compact_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False):
     lanes = list(params) + [jnp.zeros((W,), dtype)] * (P - len(params))
     rows = jnp.concatenate([state, jnp.stack(lanes)]) if P else state
     Y = lax.dynamic_update_slice(Y, rows, (first, i32(0)))
-    C = jnp.zeros((S, 4, W), dtype)
-    Y, C = _order0(tape, Y, C, trig)
-    Y, C = Y[tape.perm], C[tape.perm]
-    # --- orders 1..K-1, the state's 2..K
+    D = jnp.zeros((S, 2, W), dtype)
+    Y, D = _order0(tape, Y, D, trig)
+    Y, D = Y[tape.perm], D[tape.perm]
+    # --- orders 1..K-1 of the nodes, 2..K of the state
     H = tape.hist.shape[1]
+    # Histories: P forward (Hp[j] = p_j), Q reversed (Hq[K - j] = q_j), zero where
+    # not yet computed: a Cauchy sum over a fixed window then reads zeros past k.
     Hp = jnp.zeros((H, K, W), dtype).at[:, 0].set(Y[tape.hist[0]])
-    Hq = jnp.zeros((H, K, W), dtype).at[:, 0].set(Y[tape.hist[1]])
-    out = [state[1:], Y[tape.outs]]
-    zero_t = jnp.zeros((1, W), dtype)
+    Hq = jnp.zeros((H, 2 * K, W), dtype).at[:, K].set(Y[tape.hist[1]])
+    Z = jnp.zeros((m - 1, K + 1, W), dtype)
+    Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(Y[tape.outs])
     # (Every slot a block writes is written at every order before it is read;
     # the others, constants and parameters, are zero above order 0.)
     Y = jnp.zeros((S, W), dtype)
-    for k in range(1, K):
-        t_k = (zero_t + 1.0) if k == 1 else zero_t
-        Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, out[k]]), (first, i32(0)))
-        Y = _order_k(tape, Y, Hp, Hq, C, k)
-        if k < K - 1:
-            Hp = Hp.at[:, k].set(Y[tape.hist[0]])
-            Hq = Hq.at[:, k].set(Y[tape.hist[1]])
-        out.append(Y[tape.outs] * (1.0 / (k + 1)))
-    stacked = jnp.stack(out, axis=1)  # (m - 1, K + 1, W)
-    return [[stacked[i, k] for k in range(K + 1)] for i in range(m - 1)]
+
+    def order(k, carry, window):
+        Y, Hp, Hq, Z = carry
+        k = k.astype(jnp.int32)
+        t_k = jnp.where(k == 1, 1.0, 0.0).astype(dtype) * jnp.ones((1, W), dtype)
+        y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
+        Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, y_k]), (first, i32(0)))
+        Y = _order_k(tape, Y, Hp, Hq, D, k, window)
+        Hp = lax.dynamic_update_slice(Hp, Y[tape.hist[0]][:, None], (i32(0), k, i32(0)))
+        Hq = lax.dynamic_update_slice(
+            Hq, Y[tape.hist[1]][:, None], (i32(0), i32(K) - k, i32(0))
+        )
+        f = Y[tape.outs] / (k + 1).astype(dtype)
+        Z = lax.dynamic_update_slice(Z, f[:, None], (i32(0), k + 1, i32(0)))
+        return Y, Hp, Hq, Z
+
+    carry = (Y, Hp, Hq, Z)
+    for first_k, end_k, window in _segments(K, runs):
+        carry = lax.fori_loop(
+            i32(first_k), i32(end_k), functools.partial(order, window=window), carry
+        )
+    Z = carry[3]
+    return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
