@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import lagrax
-from lagrax._cache import executables
+from lagrax._cache import executables, folder
 from lagrax.systems import asymmetric_well, pendulum
 
 
@@ -112,10 +112,10 @@ def test_eviction_keeps_the_most_recently_used(tmp_path):
         path.write_bytes(b"x" * size)
         os.utime(path, (1000 + i, 1000 + i))  # e0 oldest
     (tmp_path / "notes.txt").write_bytes(b"y" * 1000)  # not an entry: kept
-    executables._evict(str(tmp_path), limit=300)
+    folder.evict(str(tmp_path), limit=300)
     assert _files(tmp_path) == ["e2.bin", "e3.bin"]
     assert (tmp_path / "notes.txt").exists()
-    executables._evict(str(tmp_path), limit=1000)
+    folder.evict(str(tmp_path), limit=1000)
     assert _files(tmp_path) == ["e2.bin", "e3.bin"]
 
 
@@ -221,7 +221,7 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_compilation_cache_dir", sys.argv[1])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-from lagrax._cache import executables
+from lagrax._cache import executables, folder
 
 f = jax.jit(lambda x: jnp.where(x > 0, jnp.sin(x), jnp.cos(x)) * 2.0)
 x = jnp.linspace(-1.0, 1.0, 7)

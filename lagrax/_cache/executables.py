@@ -39,15 +39,25 @@ or one that fails to load, falls back to lowering (and is written again). Small
 answers that cost a trace (whether the Taylor step covers a Lagrangian) are kept the
 same way (`remembered`, files `d*.key`).
 
+What is written is only what is known to load safely in another process
+(`_kernels`): a program whose native code calls nothing outside XLA's own kernels,
+or only jaxlib's LAPACK kernels, which a new process sets up before loading it
+(`lagrax._compat.prepare_lapack`); a host callback (a progress meter, a
+`jax.pure_callback`: a pointer into the process that compiled it), a transfer to or
+from the host, or any kernel of unknown kind keeps the program in this process's
+table only. The folder, its entries and their checks before loading are
+`lagrax._cache.folder`'s (the folder is its owner's alone, each entry carries its
+size, digest and kernels; `lagrax cache info|clear`).
+
 The library never touches JAX's global configuration (its persistent compilation
 cache stays the user's choice): this is its own cache, in `$LAGRAX_CACHE_DIR` or else
 `$XDG_CACHE_HOME/lagrax/executables` (`~/.cache/...`); `LAGRAX_CACHE_DIR=""` turns
 it off; so does running as one of several processes (`jax.distributed`), where an
 executable belongs to one process's devices, and a default backend other than the
-CPU (a GPU's executables were not tested here). Every key also holds the JAX and jaxlib
-versions, `XLA_FLAGS`, the devices and the host CPU (an executable is native code
-for one processor). An entry that cannot be read is compiled again; past
-`MAX_BYTES` the least recently used entries are removed.
+CPU. Every key also holds the JAX and jaxlib versions, `XLA_FLAGS`, the devices and
+the host CPU (an executable is native code for one processor). An entry that cannot
+be read is compiled again; past `folder.MAX_BYTES` the least recently used entries
+are removed.
 
 Nothing is written while JAX's own persistent compilation cache
 (`jax_compilation_cache_dir`) is on or has served the process: an executable JAX
@@ -55,8 +65,11 @@ took from it serializes again without its object code on CPU, which XLA loads
 without complaint, to fail at its first kernel (`NOT_FOUND: Function ... not
 found`); that cache keeps programs for later processes itself. As a safety net,
 the first call of an executable loaded from disk waits for its result: where it
-fails, the entry is removed and the program compiled, written and run again (no
-program here donates its inputs, so the second run sees the same arguments).
+fails with an error, the entry is removed and the program compiled, written and run
+again (no program here donates its inputs, so the second run sees the same
+arguments). A crash cannot be caught that way: what is written is what is known to
+load safely, and `tests/test_cache_processes.py` runs every kind of program the
+cache keeps in two fresh processes.
 """
 
 import collections
@@ -64,14 +77,15 @@ import functools
 import hashlib
 import os
 import pickle
+import re
 import sys
-import tempfile
 
 import jax
 import numpy as np
 from jax.experimental import serialize_executable
 
-from . import faithful
+from .. import _compat
+from . import faithful, folder as _folder
 
 
 # Compiled programs of this process: by key (`call`), and by program and argument
@@ -80,17 +94,15 @@ from . import faithful
 _LOADED: dict = {}
 _PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 _MAX_PROGRAMS = 64
-# The most the cache folder holds (bytes); a sweep's executable is ~2 MB.
-MAX_BYTES = 1 << 30
+# What the cache did in this process: entries `loaded` from disk, programs `compiled`,
+# entries `written`, programs `refused` (not written: not known to load safely).
+STATS: collections.Counter = collections.Counter()
 
 
 def cache_dir() -> str | None:
-    """Where executables are kept, or None when the cache is off."""
-    env = os.environ.get("LAGRAX_CACHE_DIR")
-    if env is not None:
-        return env or None
-    base = os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache"))
-    return os.path.join(base, "lagrax", "executables")
+    """The folder executables are kept in (created, and checked to be this user's
+    alone: `folder.folder`), or None when the cache is off or refused."""
+    return _folder.folder()
 
 
 @functools.lru_cache(maxsize=1)
@@ -281,7 +293,7 @@ class _Found:
             if self.out_tree is None or self.out_tree != out_tree:
                 return
             out_tree = None  # (the caller's, given at every call)
-        _write(_path(self.prekey, ".key"), pickle.dumps((key, out_tree)))
+        _folder.write(_path(self.prekey, ".key"), pickle.dumps((key, out_tree)))
 
 
 def _prekey(jitted, origin, options, static, leaves, treedef):
@@ -340,17 +352,12 @@ def remembered(origin, compute) -> bool:
         except Exception:  # noqa: BLE001 -- as for a pre-key: computed, not kept
             path = None
     if path is not None:
-        try:
-            with open(path, "rb") as fh:
-                value = pickle.load(fh)
-            if type(value) is bool:
-                os.utime(path)
-                return value
-        except Exception:  # noqa: BLE001 -- none yet, or damaged: computed
-            pass
+        found = _folder.read(path)
+        if found is not None and found[1] in (b"0", b"1"):
+            return found[1] == b"1"
     value = compute()
     if path is not None and type(value) is bool:
-        _write(path, pickle.dumps(value))
+        _folder.write(path, b"1" if value else b"0")
     return value
 
 
@@ -373,26 +380,19 @@ _VARIABLES = ("JAX_", "XLA_", "EQX_", "LAGRAX_", "TF_")
 def _settings():
     """Everything outside the program that changes how it traces and lowers: JAX's
     configuration (every option, and JAX's own list of what enters a trace, the
-    context managers' values included), equinox's, the environment variables."""
-    from jax._src import config as jax_config  # (JAX has no public trace context)
-
-    context = []
-    for value in jax_config.trace_context():
-        if type(value).__name__ == "AxisEnv":  # (under no transformation: empty)
-            names = value.spmd_axis_names or value.explicit_mesh_axis_names
-            if value.axis_sizes or names:
-                raise faithful.Unfaithful("an axis environment")
-            value = "AxisEnv()"
-        context.append(value)
-    eqx_config = vars(sys.modules["equinox._config"])
-    eqx_values = {k: v for k, v in eqx_config.items() if k.startswith("EQX_")}
+    context managers' values included), the environment variables (equinox's
+    settings among them: it reads them at import)."""
+    try:
+        context = _compat.trace_context()
+    except Exception as e:  # noqa: BLE001 -- JAX moved it: no pre-key
+        raise faithful.Unfaithful(f"JAX's trace context ({e})") from None
     variables = {
         k: v
         for k, v in os.environ.items()
         if k.startswith(_VARIABLES) and k != "LAGRAX_CACHE_DIR"
     }
     options = {k: v for k, v in jax.config.values.items() if not _cache_option(k)}
-    return faithful.text((options, context, eqx_values, variables))
+    return faithful.text((options, list(context), variables))
 
 
 def _cache_option(name) -> bool:
@@ -436,12 +436,12 @@ def _leaf_text(x) -> str:
 
 def _read_link(prekey):
     """`(program key, output structure or None)` recorded under `prekey`, or None."""
-    path = _path(prekey, ".key")
+    found = _folder.read(_path(prekey, ".key"))
+    if found is None:
+        return None
     try:
-        with open(path, "rb") as fh:
-            key, out_tree = pickle.load(fh)
-        os.utime(path)
-    except Exception:  # noqa: BLE001 -- none, or damaged: found by lowering
+        key, out_tree = pickle.loads(found[1])
+    except Exception:  # noqa: BLE001 -- not a link: found by lowering
         return None
     if not (isinstance(key, str) and key.startswith("p")):
         return None
@@ -477,13 +477,12 @@ def _run(table, slot, call_args, recompile):
 # Programs JAX has taken from its persistent compilation cache in this process,
 # counted from its monitoring events (listened to from the start: such an executable
 # can come back later from JAX's in-memory cache, without an event).
-_JAX_CACHE_HIT = "/jax/compilation_cache/cache_hits"
 _jax_cache_hits = 0
 
 
 def _on_event(event, **kwargs):
     global _jax_cache_hits
-    if event == _JAX_CACHE_HIT:
+    if event == _compat.JAX_CACHE_HIT_EVENT:
         _jax_cache_hits += 1
 
 
@@ -496,6 +495,7 @@ def _compile(key, lowered):
     it serializes without its object code, and that cache keeps programs for later
     processes itself."""
     compiled = lowered.compile()
+    STATS["compiled"] += 1
     jax_cache = jax.config.jax_compilation_cache_dir is not None and (
         jax.config.jax_enable_compilation_cache
     )
@@ -512,67 +512,77 @@ def _path(key, suffix=".bin"):
 
 
 def _remove(key):
-    try:
-        os.remove(_path(key))
-    except (OSError, TypeError):  # (gone already, or the cache turned off)
-        pass
+    path = _path(key)
+    if path is not None:
+        _folder.remove(path)
+
+
+# The custom calls of a CPU executable known to load safely in another process:
+# jaxlib's LAPACK kernels (Cholesky, LU, triangular solves), once set up there.
+_LAPACK = re.compile(r"lapack_[sdcz][a-z0-9]+_ffi")
+_HOST_TRANSFER = re.compile(r" (send|recv|infeed|outfeed)(-done)?\(")
+
+
+def _kernels(compiled):
+    """The targets of `compiled`'s custom calls (native code outside XLA's own) where
+    each is known to load safely in another process; None where one is not (a host
+    callback: a pointer into this process; anything unknown), or where the program
+    moves data to or from the host. Refused unless shown safe."""
+    text = compiled.as_text()
+    if not isinstance(text, str):
+        return None
+    targets = re.findall(r'custom_call_target="([^"]*)"', text)
+    if text.count(" custom-call(") != len(targets) or _HOST_TRANSFER.search(text):
+        return None
+    kinds = sorted(set(targets))
+    if not all(_LAPACK.fullmatch(t) for t in kinds):
+        return None
+    if kinds and not _compat.prepare_lapack():
+        return None
+    return kinds
 
 
 def _load(key, in_tree, out_tree):
+    """The executable `key` from disk, or None where there is none, or it fails a
+    check (`folder.read`), or it calls kernels that cannot be set up here."""
     path = _path(key)
     if path is None or not os.path.exists(path):
         return None
-    try:
-        with open(path, "rb") as fh:
-            payload = pickle.load(fh)
-        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
-        os.utime(path)  # (recently used: kept longest)
-        return compiled
-    except Exception:  # noqa: BLE001 -- a damaged or stale entry: compile again
+    found = _folder.read(path)
+    if found is None or found[0].get("key") != key:
+        _folder.remove(path)  # (damaged, or not ours: compiled and written anew)
         return None
+    kinds = found[0].get("kernels")
+    if not isinstance(kinds, list) or not all(
+        isinstance(k, str) and _LAPACK.fullmatch(k) for k in kinds
+    ):
+        return None
+    if kinds and not _compat.prepare_lapack():  # (before loading: see there)
+        return None
+    try:
+        compiled = serialize_executable.deserialize_and_load(
+            found[1], in_tree, out_tree
+        )
+    except Exception:  # noqa: BLE001 -- a stale entry: compile again
+        return None
+    STATS["loaded"] += 1
+    return compiled
 
 
 def _store(key, compiled):
+    """Writes `compiled` under `key`, where it is known to load safely in another
+    process (`_kernels`)."""
     path = _path(key)
     if path is None:
         return
+    kinds = _kernels(compiled)
     try:
-        payload = serialize_executable.serialize(compiled)[0]
-    except Exception:  # noqa: BLE001 -- a program that cannot be serialized (host
-        return  # callbacks): kept in memory only
-    if _write(path, pickle.dumps(payload)):
-        _evict(os.path.dirname(path))
-
-
-def _write(path, data) -> bool:
-    """Writes `data` to `path` whole or not at all; False where it cannot (a
-    read-only or full disk)."""
-    try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-        return True
-    except OSError:
-        return False
-
-
-def _evict(folder, limit=None):
-    """Removes the least recently used entries until the folder holds at most
-    `limit` (default `MAX_BYTES`) bytes."""
-    limit = MAX_BYTES if limit is None else limit
-    entries = []
-    for e in os.scandir(folder):
-        if e.name.endswith((".bin", ".key")) and e.is_file():
-            st = e.stat()
-            entries.append((st.st_mtime, st.st_size, e.path))
-    total = sum(size for _, size, _ in entries)
-    for _, size, path in sorted(entries):
-        if total <= limit:
-            break
-        try:
-            os.remove(path)
-            total -= size
-        except OSError:
-            pass
+        payload = None if kinds is None else serialize_executable.serialize(compiled)[0]
+    except Exception:  # noqa: BLE001 -- a program that cannot be serialized
+        payload = None
+    if payload is None:
+        STATS["refused"] += 1  # (kept in this process's table only)
+        return
+    if _folder.write(path, payload, {"key": key, "kernels": kinds}):
+        STATS["written"] += 1
+        _folder.evict(os.path.dirname(path))

@@ -34,6 +34,8 @@ import equinox as eqx
 import numpy as np
 from jax.extend import core as jex_core
 
+from .. import _compat
+
 
 # The libraries whose code fixes what their module-level types and primitives do: the
 # pre-key holds their versions (lagrax: its source digest).
@@ -191,7 +193,7 @@ def _jax_object(x, t) -> str:
     if t in (jax.sharding.AbstractMesh, jax.sharding.Mesh) and x.empty:
         return f"{t.__name__}()"
     name = f"{t.__module__}.{t.__qualname__}"
-    if name == "jax._src.named_sharding.UnspecifiedValue":  # (no public name)
+    if _compat.is_unspecified_sharding(x):
         return "UnspecifiedValue"
     raise Unfaithful(f"an object of type {name}")
 

@@ -1,4 +1,5 @@
-r"""The `lagrax` command: `lagrax sweep [TARGET ...]` and `lagrax systems`.
+r"""The `lagrax` command: `lagrax sweep [TARGET ...]`, `lagrax systems` and
+`lagrax cache info|clear`.
 
 `lagrax sweep` measures the period of many amplitudes at once with
 `lagrax.sweep_periods` and compares it with a reference. TARGET is
@@ -40,6 +41,8 @@ def main(argv=None) -> int:
         args = parser().parse_args(argv)
         args.from_command_line = argv is None
         validate(args)
+        if args.command == "cache":
+            return _cache(args.action)
         if args.command == "systems":
             import jax
 
@@ -58,3 +61,20 @@ def main(argv=None) -> int:
             "\nlagrax: interrupted; rerun the same command to resume", file=sys.stderr
         )
         return 130
+
+
+def _cache(action) -> int:
+    """`lagrax cache info|clear`: the disk cache's folder, state and size, or empty
+    it (without starting JAX)."""
+    from .._cache import folder
+
+    if action == "clear":
+        files, size = folder.clear()
+        print(f"removed {files} files ({size / 2**20:.1f} MiB) from {folder.location()}")
+        return 0
+    info = folder.info()
+    print(f"folder   {info['folder'] or '(none)'}")
+    print(f"state    {info['state']}")
+    print(f"entries  {info['entries']} files, {info['bytes'] / 2**20:.1f} MiB")
+    print(f"limit    {info['max_bytes'] / 2**20:.0f} MiB (least recently used go first)")
+    return 0

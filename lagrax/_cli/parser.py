@@ -49,6 +49,16 @@ def parser():
         help="list the built-in systems, their parameters and defaults",
         description="The built-in systems of lagrax.systems, one line each.",
     )
+    c = sub.add_parser(
+        "cache",
+        help="show or empty the disk cache of compiled programs",
+        description=(
+            "The library's disk cache of compiled programs ($LAGRAX_CACHE_DIR, else "
+            "~/.cache/lagrax/executables; LAGRAX_CACHE_DIR= turns it off). 'info': "
+            "where it is, whether it is on, its size; 'clear': remove its entries."
+        ),
+    )
+    c.add_argument("action", choices=("info", "clear"), help="info or clear")
     s = sub.add_parser(
         "sweep",
         help="periods of many amplitudes against a reference",
@@ -224,7 +234,8 @@ def validate(args):
     """Checks that need neither JAX nor the target; `UsageError` on failure."""
     if args.command is None:
         raise UsageError(
-            "expected a command: `lagrax sweep [TARGET]` or `lagrax systems`"
+            "expected a command: `lagrax sweep [TARGET]`, `lagrax systems` or "
+            "`lagrax cache info|clear`"
         )
     if args.command != "sweep":
         return

@@ -16,18 +16,22 @@ def setup_jax(args):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    # Compiling the sweep takes seconds; keep it across runs of the command.
-    cache = os.path.join(
-        os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")),
-        "lagrax",
-        "jax",
-    )
-    try:
-        os.makedirs(cache, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    except Exception:  # a read-only home: just compile every time
-        pass
+    # Compiling the sweep takes seconds; a later run loads it instead. One process
+    # on a CPU: from the library's own disk cache (found without tracing). Several
+    # processes (`--distributed`), whose executables it does not keep: from JAX's
+    # persistent compilation cache, under the same folder.
+    if args.distributed:
+        cache = os.path.join(
+            os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"),
+            "lagrax",
+            "jax",
+        )
+        try:
+            os.makedirs(cache, mode=0o700, exist_ok=True)
+            jax.config.update("jax_compilation_cache_dir", cache)
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+        except Exception:  # a read-only home: just compile every time
+            pass
     wanted = args.devices if args.devices is not None else cpu_count()
     try:
         # Every core a host device: a CPU device runs one chunk at a time, so one

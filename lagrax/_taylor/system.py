@@ -66,9 +66,7 @@ class _SystemProgram(_Program):
             return [self._negated[args[0]]]
         if name in _COMMUTATIVE:
             args = sorted(args)  # exact: a + b == b + a, a * b == b * a
-        if prim is not _solve.definite_solve_p or not any(
-            a in self.series for a in args
-        ):
+        if prim is not _solve.definite_solve_p:
             outs = super()._emit(prim, args, params, outvars)
             if name == "neg":
                 self._negated[outs[0]] = args[0]
@@ -81,7 +79,11 @@ class _SystemProgram(_Program):
             for b in range(a):
                 args[a * n + b] = args[b * n + a]
         avals = [v.aval for v in outvars]
-        outs = self._add("solve", prim, args, params, avals, True)
+        # A "solve" node even where no input is a series (a constant acceleration:
+        # a free particle, uniform gravity): `definite_solve_p` has no lowering, and
+        # `_SystemOrder0` evaluates the node at order 0.
+        series = any(a in self.series for a in args)
+        outs = self._add("solve", prim, args, params, avals, series)
         self.series.discard(outs[-1])  # `ok`: decided at order 0
         return outs
 
@@ -96,7 +98,13 @@ class _SystemOrder0(_Order0):
         if node.kind == "solve":
             n = node.params["n"]
             x, ok = _solve.entries_solve(vals[: n * n], vals[n * n :], n)
-            return [*x, ok]
+            outs = [*x, ok]
+            if any(batched):
+                # `_evaluate` marks every output lane-batched when an input is; an
+                # output that does not depend on the batched inputs (`ok` of a
+                # constant M, the entry of a constant force) must have the axis too.
+                outs = [jnp.broadcast_to(o, (self.W,)) for o in outs]
+            return outs
         return super()._node(node, vals, batched, trig)
 
 
@@ -277,8 +285,10 @@ class System:
         store.update(zip(y_ids, coefs))
         st = _Unrolled(zero, lanes, store)
         for k in range(1, K):
-            st.k, st.kf, st.cur = k, float(k), {}  # (`get` reads `cur` first)
-            st.cur = {t_id: st.get(t_id)}
+            # `cur` emptied before `get`, which reads it first: it still holds the
+            # previous order's coefficients (t_1 = 1, where t_k = 0 for k >= 2).
+            st.k, st.kf, st.cur = k, float(k), {}
+            st.cur[t_id] = st.get(t_id)
             st.cur.update((i, c[k]) for i, c in zip(y_ids, coefs))
             _order_k(st, prog)
             for c, o, y in zip(coefs, prog.outs, ys):

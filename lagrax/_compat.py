@@ -1,0 +1,77 @@
+"""What lagrax needs from its dependencies that their public APIs do not say.
+
+The only module that may touch a dependency's internals. One function per fact; each
+has a fallback that is only slower (never wrong), and a test in `tests/test_compat.py`
+that fails loudly when the dependency moves underneath.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+
+# ------------------------------------------------------------------ jaxlib's LAPACK
+
+# jaxlib releases on which `prepare_lapack` was checked to set up the kernels (a
+# loaded executable that calls them ran in a fresh process: tests/test_cache_processes.py).
+_LAPACK_CHECKED = ("0.10.",)
+
+
+@functools.cache
+def prepare_lapack() -> bool:
+    """Sets up jaxlib's CPU LAPACK kernels (Cholesky, LU, triangular solves...) in
+    this process, for an executable loaded from disk that calls them; False where
+    this jaxlib is not known to be set up this way (such executables are then not
+    kept on disk: compiled in each process instead).
+
+    jaxlib points its LAPACK kernels at SciPy's when a program that calls one is
+    lowered, not when an executable is loaded: in a new process an executable that
+    was loaded without lowering anything calls a null pointer and the process dies
+    (jax-ml/jax#29610). Lowering one small Cholesky factorization sets them all."""
+    if not jax.lib.__version__.startswith(_LAPACK_CHECKED):
+        return False
+    try:
+        spec = jax.ShapeDtypeStruct((2, 2), jnp.float32)
+        jax.jit(jnp.linalg.cholesky).lower(spec)  # (the cache runs on a CPU only)
+    except Exception:  # noqa: BLE001 -- lowering moved: such programs not kept
+        return False
+    return True
+
+
+# ------------------------------------------------------------ JAX's trace context
+
+
+def trace_context():
+    """JAX's own list of the settings that enter a trace (its configuration's
+    context managers included), as values with a faithful text; raises where JAX
+    moved it (the caller then keys its program by lowering it, never by a key that
+    could name another program). No public API lists them."""
+    from jax._src import config as jax_config
+
+    context = []
+    for value in jax_config.trace_context():
+        if type(value).__name__ == "AxisEnv":  # (under no transformation: empty)
+            names = value.spmd_axis_names or value.explicit_mesh_axis_names
+            if value.axis_sizes or names:
+                raise ValueError("an axis environment")
+            value = "AxisEnv()"
+        context.append(value)
+    return tuple(context)
+
+
+def is_unspecified_sharding(x) -> bool:
+    """Whether `x` is JAX's placeholder for a sharding left unspecified (as a nested
+    `jit`'s equation holds it); it has no public name. False where JAX renamed it:
+    such a program then has no pre-key (found by lowering)."""
+    t = type(x)
+    return f"{t.__module__}.{t.__qualname__}" == (
+        "jax._src.named_sharding.UnspecifiedValue"
+    )
+
+
+# --------------------------------------------------- JAX's persistent compile cache
+
+# The `jax.monitoring` event JAX records when its persistent compilation cache serves
+# a program (an executable that serializes again without its object code on a CPU).
+JAX_CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"

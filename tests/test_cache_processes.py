@@ -1,0 +1,119 @@
+"""What the disk cache keeps is run twice, in two fresh processes sharing one cache
+folder: the second loads what the first wrote, must not crash, and must give the same
+numbers bit for bit (`cache_worker.py` runs the calls).
+
+In-process tests (`test_executables.py`) empty this process's table to stand for a
+later process; only a real one shows what a new process lacks (an executable whose
+LAPACK kernels were never set up there crashed it)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+import cache_worker  # noqa: E402
+
+
+# The default run: one process pair over the kinds that crashed a later process
+# (LAPACK kernels in a variational solver's Newton iteration and in the mass-matrix
+# solve of n >= 3 coordinates) and a sweep; every kind on its own pair with -m slow.
+DEFAULT = ["simulate_gauss_legendre4", "simulate_three_coordinates", "simulate_tsit5"]
+# Programs the cache refuses to write (a host callback: bound to its process).
+REFUSED = {"simulate_progress_meter"}
+# Calls that compile nothing the cache keeps (they run op by op or under the caller's
+# trace): still run twice, for the crash and the numbers.
+UNCACHED = {"simulate_batch_tsit5", "period", "period_quarter_estimate"}
+UNCACHED |= {"quadrature_period"}
+
+
+def _run(cache, out, cases):
+    env = dict(os.environ, LAGRAX_CACHE_DIR=str(cache), PYTHONFAULTHANDLER="1")
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    proc = subprocess.run(
+        [sys.executable, os.path.join(HERE, "cache_worker.py"), str(out), *cases],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, (
+        f"exit status {proc.returncode} running {cases}:\n{proc.stderr[-4000:]}"
+    )
+    with open(str(out).removesuffix(".npz") + ".json") as fh:
+        record = json.load(fh)
+    with np.load(out) as data:
+        return {k: data[k] for k in data.files}, record
+
+
+def _two_processes(tmp_path, cases):
+    cache = tmp_path / "cache"
+    first, record1 = _run(cache, tmp_path / "first.npz", cases)
+    second, record2 = _run(cache, tmp_path / "second.npz", cases)
+    assert sorted(first) == sorted(second) and first
+    for name in first:
+        np.testing.assert_array_equal(second[name], first[name], err_msg=name)
+    for case in cases:
+        one, two = record1[case], record2[case]
+        if case in REFUSED:
+            assert one.get("compiled", 0) >= 1 and one.get("written", 0) == 0, one
+            assert two.get("compiled", 0) >= 1, two
+        elif case in UNCACHED:
+            assert two.get("loaded", 0) == 0 and two.get("written", 0) == 0, two
+        else:
+            assert one.get("written", 0) >= 1, (case, one)
+            assert two.get("loaded", 0) >= 1 and two.get("compiled", 0) == 0, (
+                case,
+                two,
+            )
+
+
+def test_the_kinds_that_crashed_run_twice(tmp_path):
+    _two_processes(tmp_path, DEFAULT)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", [c for c in cache_worker.CASES if c not in DEFAULT])
+def test_every_kind_runs_twice(tmp_path, case):
+    _two_processes(tmp_path, [case])
+
+
+def test_the_case_lists_agree():
+    assert set(DEFAULT) | REFUSED | UNCACHED <= set(cache_worker.CASES)
+    assert len(set(cache_worker.CASES)) == len(cache_worker.CASES)
+
+
+def _cli_twice(tmp_path, *args):
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "home"))
+    env.pop("LAGRAX_CACHE_DIR")  # (the command's default folder, under the home)
+    outs = []
+    for run in ("first", "second"):
+        out = tmp_path / f"{run}.csv"
+        proc = subprocess.run(
+            [sys.executable, "-m", "lagrax", "sweep", *args, "--out", str(out)],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+        assert proc.returncode == 0, f"{run} run:\n{proc.stderr[-4000:]}"
+        outs.append(out.read_text())
+    assert outs[0] == outs[1]
+    cache = tmp_path / "home" / "lagrax" / "executables"
+    return sorted(p.name for p in cache.iterdir())
+
+
+def test_the_command_line_runs_twice_on_one_cache(tmp_path):
+    names = _cli_twice(tmp_path, "pendulum", "--count", "64", "--solver", "tsit5")
+    assert any(n.endswith(".bin") for n in names)
+
+
+@pytest.mark.slow
+def test_the_default_job_runs_twice_on_one_cache(tmp_path):
+    names = _cli_twice(tmp_path, "--count", "256")
+    assert any(n.endswith(".bin") for n in names)
