@@ -626,7 +626,7 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
             G = Gc if form == "cau" else Gl
             for i in range(0, len(nodes), G):
                 group = nodes[i : i + G]
-                seq.append((kind, len(blocks1[form])))
+                seq.append((kind, len(blocks1[form]), len(group)))
                 blocks1[form].append(group)
                 firsts[form].append((cur, rows))
                 for j, nd in enumerate(group):
@@ -740,7 +740,7 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
         dout[bi] = firsts["dlin"][bi][0]
         for j, nd in enumerate(nodes):
             dgat[bi, :, j] = [s1(i) for i in _form_operands(nd)]
-    seq1 = np.zeros((_bucket(len(seq), minimum.get("NB", 4)), 2), np.int32)
+    seq1 = np.zeros((_bucket(len(seq), minimum.get("NB", 4)), 3), np.int32)
     seq1[: len(seq)] = seq
     P_arr = np.full((P,), dummy, np.int32)
     P_arr[: len(b.params)] = [fixed[b.id(i)] for i in b.params]
