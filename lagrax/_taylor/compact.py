@@ -181,9 +181,9 @@ class CompactTape(eqx.Module):
     inputs ($t$, then the state's entries), the per-lane parameters and the
     constants (`values`). `outs`: the slots of $f$'s entries (series space).
 
-    Order 0: `lev0[level, family]` the range of that family's blocks (`op0`,
+    Order 0: `seq0` its blocks in the level order (`(family, block)`; `op0`,
     `arg0` the operands in order-0 space, `out0` the first output and count,
-    `prm0` the affine coefficients); `seg0` the levels before each factorization
+    `prm0` the affine coefficients); `seg0` the blocks before each factorization
     (`fac_m` its matrix's entries, padded with the identity; `fac_dst` where its
     inverse's entries go, as flat indices into the per-lane coefficients; `fac_ok`
     its verdict's slot).
@@ -200,7 +200,7 @@ class CompactTape(eqx.Module):
     params: jax.Array
     outs: jax.Array
     perm: jax.Array
-    lev0: jax.Array
+    seq0: jax.Array
     op0: jax.Array
     arg0: jax.Array
     out0: jax.Array
@@ -230,7 +230,7 @@ class CompactTape(eqx.Module):
         shapes = tuple(
             (name, getattr(self, name).shape)
             for name in (
-                "values", "inputs", "params", "lev0", "op0", "fac_m", "cgat",
+                "values", "inputs", "params", "seq0", "op0", "fac_m", "cgat",
                 "sgat", "dgat", "hist", "seq1",
             )
         )  # fmt: skip
@@ -241,7 +241,7 @@ class CompactTape(eqx.Module):
         size class, or a class that holds both (`join`)."""
         out = dict(
             S=self.values.shape[0],
-            L0=self.lev0.shape[0],
+            NB0=self.seq0.shape[0],
             n=math.isqrt(self.fac_m.shape[1]) if self.fac_m.shape[1] > 1 else 0,
             F=self.fac_m.shape[0] if self.fac_m.shape[1] > 1 else 0,
             H=self.hist.shape[1],
@@ -532,14 +532,25 @@ def _family(node):
     return fam
 
 
-def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
+def build(
+    prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None, traced=False
+):
     """The `CompactTape` of a flattened program: `inputs` (ids of $t$ and the
     state's entries), `params` (per-lane parameter ids), `outs` ($f$'s ids).
-    `size`: a dict of smallest sizes to pad to.
+    `size`: a dict of smallest sizes to pad to. `traced=True`: constants that are
+    tracers (values of an enclosing trace) become parameters after `params`, and
+    the result is `(tape, their values)`.
 
     **Raises:** `NotImplementedError` where a variable has more than one entry, a
-    primitive has no opcode, or a constant is not concrete."""
-    b = _Builder(prog, inputs, params, outs)
+    primitive has no opcode, or (without `traced`) a constant is not concrete."""
+    extra = [
+        i for i, v in prog.consts.items() if isinstance(v, jax.core.Tracer)
+    ]  # (scalars: checked with every variable below)
+    if extra and not traced:
+        raise NotImplementedError("a compact tape needs concrete constants")
+    b = _Builder(prog, inputs, list(params) + extra, outs)
+    for i in extra:
+        b.consts.pop(i)
     _levels(b)
     dtype = np.dtype(dtype)
     minimum = dict(size or {})
@@ -588,8 +599,6 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
             row.append((start, len(blocks0[f])))
         lev0.append(row)
     order = sorted(range(len(b.factors)), key=lambda i: b.factors[i].lvl0)
-    seg0 = [sum(lvl < b.factors[i].lvl0 + 1 for lvl in levels0) for i in order]
-    seg0.append(len(levels0))
     slot0 = dict(fixed)
     cur = head
     for lvl_i, lvl in enumerate(levels0):
@@ -650,7 +659,7 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
     NM = max([f.n for f in b.factors] + [minimum.get("n", 0)])
     F = max(len(b.factors), minimum.get("F", 0))
     S = _bucket(max(used0, used1) + max(G0, Gc, Gl) + 1, minimum.get("S", 64))
-    L0 = _bucket(len(levels0), minimum.get("L0", 4))
+    L0 = len(levels0)
     B0 = {f: _bucket(len(blocks0[f]), minimum.get(f"B0{f}", 1)) for f in fams}
     B1 = {
         form: _bucket(len(blocks1[form]), minimum.get(f"B1{form}", 1)) for form in forms
@@ -685,6 +694,17 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
         for fi, f in enumerate(fams):
             start, end = lev0[lvl_i][f]
             lev[lvl_i, fi] = (offs[fi] + start, offs[fi] + end)
+    # The blocks in one sequence, level by level: (family, block); a factorization
+    # after the blocks of the levels up to its own.
+    seq0_list, seg0 = [], []
+    for lvl_i, lvl in enumerate(levels0):
+        while len(seg0) < len(order) and b.factors[order[len(seg0)]].lvl0 < lvl:
+            seg0.append(len(seq0_list))
+        for fi in range(nF):
+            seq0_list += [(fi, row) for row in range(*lev[lvl_i, fi])]
+    seg0 += [len(seq0_list)] * (len(order) + 1 - len(seg0))
+    seq0 = np.zeros((_bucket(len(seq0_list), minimum.get("NB0", 4)), 2), np.int32)
+    seq0[: len(seq0_list)] = seq0_list
     for fi, f in enumerate(fams):
         for bi, nodes in enumerate(blocks0[f]):
             row = offs[fi] + bi
@@ -744,28 +764,29 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
     seq1[: len(seq)] = seq
     P_arr = np.full((P,), dummy, np.int32)
     P_arr[: len(b.params)] = [fixed[b.id(i)] for i in b.params]
-    as_i = lambda x: jnp.asarray(x, jnp.int32)
-    return CompactTape(
-        values=jnp.asarray(vals),
+    # (NumPy arrays: concrete even where the tape is built inside a trace.)
+    as_i = lambda x: np.asarray(x, np.int32)
+    tape = CompactTape(
+        values=np.asarray(vals),
         inputs=as_i([fixed[b.id(i)] for i in b.inputs]),
         params=as_i(P_arr),
         outs=as_i([s1(i) for i in b.outs]),
         perm=as_i(perm),
-        lev0=as_i(lev),
+        seq0=as_i(seq0),
         op0=as_i(op0),
         arg0=as_i(arg0),
         out0=as_i(out0),
-        prm0=jnp.asarray(prm0),
+        prm0=np.asarray(prm0),
         seg0=as_i(seg0),
         fac_m=as_i(fac_m),
         fac_dst=as_i(fac_dst),
         fac_ok=as_i(fac_ok),
         cgat=as_i(cgat),
         cout=as_i(cout),
-        cst=jnp.asarray(cst),
+        cst=np.asarray(cst),
         sgat=as_i(sgat),
         sout=as_i(sout),
-        sst=jnp.asarray(sst),
+        sst=np.asarray(sst),
         dgat=as_i(dgat),
         dout=as_i(dout),
         hist=as_i(hist),
@@ -774,6 +795,9 @@ def build(prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None):
         families=fams,
         caps0=tuple(B0[f] for f in fams),
     )
+    if traced:
+        return tape, [prog.consts[i] for i in extra]
+    return tape
 
 
 # --- order 0 --------------------------------------------------------------------------
@@ -939,44 +963,64 @@ def _factor(tape, Y, D, row, NM):
     return Y, flat.reshape(D.shape)
 
 
-def _order0(tape, Y, D, trig):
+def _bound(x):
+    """A loop bound from the tape: a Python int where the tape is concrete (the
+    loop then a `scan`, which reverse mode differentiates), else traced."""
+    return x if isinstance(x, jax.core.Tracer) else int(x)
+
+
+def bounds(tape) -> tuple | None:
+    """The loop bounds of a concrete tape, `(seg0, blocks)` as Python ints (None
+    where the tape is traced)."""
+    if isinstance(tape.blocks, jax.core.Tracer) or isinstance(
+        tape.seg0, jax.core.Tracer
+    ):
+        return None
+    return tuple(int(x) for x in np.asarray(tape.seg0)), int(np.asarray(tape.blocks)[1])
+
+
+def _order0(tape, Y, D, trig, seg=None):
     """Every node's value (order 0) and per-lane coefficients (order-0 space),
-    level by level, each level's blocks by family."""
+    block by block in the level order, each block's family a switch whose branch
+    returns the block's values (small operands: `Y` and `D` are updated in place
+    outside it)."""
     G0 = tape.op0.shape[1]
     NM = math.isqrt(tape.fac_m.shape[1])
     W = Y.shape[1]
     i32 = lambda x: jnp.asarray(x, jnp.int32)
     rows = jnp.arange(G0)[:, None]
 
-    def block(bi, carry, fn):
-        Y, D = carry
+    def family(fn, bi, Y, old_d):
         op = tape.op0[bi][:, None]
         args = tape.arg0[bi]
-        start, n = tape.out0[bi, 0], tape.out0[bi, 1]
         a, b_, c = (Y[args[:, i]] for i in range(3))
-        old_y = lax.dynamic_slice_in_dim(Y, start, G0, 0)
-        old_d = lax.dynamic_slice(D, (start, i32(0), i32(0)), (G0, 2, W))
         prm = [tape.prm0[bi, i][:, None] for i in range(3)]
         value, d0, d1 = fn(op, prm, a, b_, c, old_d[:, 0], old_d[:, 1], trig)
+        return value, jnp.stack([d0, d1], axis=1)
+
+    branches = [functools.partial(family, _FAMILY_FNS[f]) for f in tape.families]
+
+    def block(i, carry):
+        Y, D = carry
+        bi = tape.seq0[i, 1]
+        start, n = tape.out0[bi, 0], tape.out0[bi, 1]
+        old_y = lax.dynamic_slice_in_dim(Y, start, G0, 0)
+        old_d = lax.dynamic_slice(D, (start, i32(0), i32(0)), (G0, 2, W))
+        value, d = lax.switch(tape.seq0[i, 0], branches, bi, Y, old_d)
         # Rows past the block's nodes keep what is there (another block's, or a
         # factorization's coefficients).
         keep = rows < n
         value = jnp.where(keep, value, old_y)
-        d = jnp.where(keep[:, :, None], jnp.stack([d0, d1], axis=1), old_d)
+        d = jnp.where(keep[:, :, None], d, old_d)
         Y = lax.dynamic_update_slice(Y, value, (start, i32(0)))
         return Y, lax.dynamic_update_slice(D, d, (start, i32(0), i32(0)))
 
-    def level(lv, carry):
-        for fi, f in enumerate(tape.families):
-            fn = functools.partial(block, fn=_FAMILY_FNS[f])
-            carry = lax.fori_loop(tape.lev0[lv, fi, 0], tape.lev0[lv, fi, 1], fn, carry)
-        return carry
-
     carry = (Y, D)
     F = tape.seg0.shape[0] - 1
+    ends = [_bound(tape.seg0[f]) for f in range(F + 1)] if seg is None else seg
     for f in range(F + 1):
-        start = tape.seg0[f - 1] if f else 0
-        carry = lax.fori_loop(start, tape.seg0[f], level, carry)
+        start = ends[f - 1] if f else 0
+        carry = lax.fori_loop(start, ends[f], block, carry)
         if f < F and NM:
             carry = _factor(tape, *carry, f, NM)
     return carry
@@ -995,7 +1039,7 @@ def _segments(K, runs=2):
     return [(a, b, b - 1) for a, b in zip(starts, ends) if b > a]
 
 
-def _order_k(tape, Y, Hp, Hq, D, k, window):
+def _order_k(tape, Y, Hp, Hq, D, k, window, blocks=None):
     """Every series node's coefficient $k$ (a traced int; series space), block by
     block in the level order: the Cauchy sums from the stored orders below $k$ and
     the values of order $k$ that earlier levels computed (`Y`). Each block's kind
@@ -1062,10 +1106,13 @@ def _order_k(tape, Y, Hp, Hq, D, k, window):
         y, out = lax.switch(tape.seq1[i, 0], branches, tape.seq1[i, 1], Y)
         return lax.dynamic_update_slice(Y, y, (out, i32(0)))
 
-    return lax.fori_loop(0, tape.blocks[1], step, Y)
+    blocks = _bound(tape.blocks[1]) if blocks is None else blocks
+    return lax.fori_loop(0, blocks, step, Y)
 
 
-def compact_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False, runs=2):
+def compact_coefficients(
+    tape: CompactTape, K: int, t, ys, params, trig=False, runs=2, bounds=None
+):
     r"""The Taylor coefficients $y_0..y_K$ of $y' = f(t, y)$ about $(t, y)$ from the
     tape of $f$'s program: `ys` the state's entries (a list of `(W,)` arrays, the
     order of the tape's inputs after $t$), `params` the per-lane parameters (`(W,)`
@@ -1073,7 +1120,10 @@ def compact_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False, r
 
     `trig`: float64 sines and cosines at order 0 by `lagrax._jaxpr.trig.sincos`
     (vectorized) instead of the C library's. `runs`: the loops over orders
-    (`_segments`)."""
+    (`_segments`). `bounds`: the tape's loop bounds as Python ints (`bounds`), for
+    a tape passed traced (each loop then a `scan`)."""
+    seg, blocks = (None, None) if bounds is None else bounds
+    tape = jax.tree.map(jnp.asarray, tape)
     W = t.shape[0]
     dtype = t.dtype
     S = tape.values.shape[0]
@@ -1088,7 +1138,7 @@ def compact_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False, r
     rows = jnp.concatenate([state, jnp.stack(lanes)]) if P else state
     Y = lax.dynamic_update_slice(Y, rows, (first, i32(0)))
     D = jnp.zeros((S, 2, W), dtype)
-    Y, D = _order0(tape, Y, D, trig)
+    Y, D = _order0(tape, Y, D, trig, seg)
     Y, D = Y[tape.perm], D[tape.perm]
     # --- orders 1..K-1 of the nodes, 2..K of the state
     H = tape.hist.shape[1]
@@ -1108,7 +1158,7 @@ def compact_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False, r
         t_k = jnp.where(k == 1, 1.0, 0.0).astype(dtype) * jnp.ones((1, W), dtype)
         y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
         Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, y_k]), (first, i32(0)))
-        Y = _order_k(tape, Y, Hp, Hq, D, k, window)
+        Y = _order_k(tape, Y, Hp, Hq, D, k, window, blocks)
         Hp = lax.dynamic_update_slice(Hp, Y[tape.hist[0]][:, None], (i32(0), k, i32(0)))
         Hq = lax.dynamic_update_slice(
             Hq, Y[tape.hist[1]][:, None], (i32(0), i32(K) - k, i32(0))
@@ -1120,7 +1170,60 @@ def compact_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False, r
     carry = (Y, Hp, Hq, Z)
     for first_k, end_k, window in _segments(K, runs):
         carry = lax.fori_loop(
-            i32(first_k), i32(end_k), functools.partial(order, window=window), carry
+            first_k, end_k, functools.partial(order, window=window), carry
         )
     Z = carry[3]
     return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
+
+
+@functools.partial(jax.jit, static_argnames=("K", "trig", "runs", "bounds"))
+def _jitted(tape, t, ys, params, K, trig, runs, bounds):
+    return compact_coefficients(tape, K, t, ys, params, trig, runs, bounds)
+
+
+def traced_once(tape: CompactTape, K: int, t, ys, params, trig=False, runs=2):
+    """`compact_coefficients` of a concrete tape as one `jax.jit` (the tape and
+    its loop bounds its arguments): traced once per size class and bounds, and
+    inlined where it is staged into a caller's program."""
+    return _jitted(tape, t, list(ys), list(params), K, trig, runs, bounds(tape))
+
+
+def lane_function(tape: CompactTape, K: int, trig=False, runs=2):
+    """`(t, ys, params) -> coefficients` of a concrete tape (as `traced_once`) for
+    which a caller's `jax.vmap` becomes more lanes of the one program (its arrays
+    keep the lanes innermost, where `vmap` would add a leading axis to every
+    array, each lane then a strided access). Its derivatives are those of the
+    plain program (`jax.custom_jvp`: forward and reverse mode)."""
+    from jax import custom_batching
+
+    loops = bounds(tape)
+
+    def plain(t, ys, params):
+        return _jitted(tape, t, list(ys), list(params), K, trig, runs, loops)
+
+    @custom_batching.custom_vmap
+    def lanes(t, ys, params):
+        return plain(t, ys, params)
+
+    @lanes.def_vmap
+    def _rule(axis_size, in_batched, t, ys, params):
+        W = t.shape[-1]
+        flat = lambda x, batched: x.reshape(-1) if batched else jnp.tile(x, axis_size)
+        t_b, ys_b, params_b = in_batched
+        out = plain(
+            flat(t, t_b),
+            [flat(y, b) for y, b in zip(ys, ys_b)],
+            [flat(p, b) for p, b in zip(params, params_b)],
+        )
+        out = jax.tree.map(lambda o: o.reshape(axis_size, W), out)
+        return out, jax.tree.map(lambda _: True, out)
+
+    @jax.custom_jvp
+    def fn(t, ys, params):
+        return lanes(t, ys, params)
+
+    @fn.defjvp
+    def _jvp(primals, tangents):
+        return jax.jvp(plain, primals, tangents)
+
+    return fn
