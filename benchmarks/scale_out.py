@@ -73,7 +73,7 @@ def worker(args):
     compile_s, res = sweep()
     times = [sweep()[0] for _ in range(args.repeats)]
     periods = np.asarray(res.periods)
-    exact = np.asarray(pendulum.pendulum_period(np.asarray(q0)))
+    exact = np.asarray(pendulum.period(np.asarray(q0)))
     if jax.process_index() == 0:
         np.save(args.periods, periods)
         print(

@@ -155,7 +155,7 @@ def long_horizon(periods, samples=4000, only=None):
     """
     from lagrax.systems import double_pendulum, spherical_pendulum
 
-    T_pend = float(pendulum.pendulum_period(AMPLITUDE))
+    T_pend = float(pendulum.period(AMPLITUDE))
     T_dp = float(2 * np.pi / double_pendulum.normal_mode_frequencies()[0])
     T_sph = 2 * np.pi / 1.3
     systems = {
@@ -347,7 +347,7 @@ def coordinate_singularity(starts=(1e-2, 1e-5, 1e-8, 0.0)):
 
 
 def float32_vs_float64(tols, steps):
-    T = float(pendulum.pendulum_period(AMPLITUDE))
+    T = float(pendulum.period(AMPLITUDE))
     out = {}
     for dtype in (jnp.float32, jnp.float64):
         name = jnp.dtype(dtype).name

@@ -73,8 +73,7 @@ def _exact(a):
 
     from lagrax.systems import pendulum
 
-    period = getattr(pendulum, "period", None) or pendulum.pendulum_period
-    return np.asarray(period(a))
+    return np.asarray(pendulum.period(a))
 
 
 def _best(fn, repeats, min_seconds=1.0):

@@ -109,7 +109,7 @@ def elastic_lagrangian(k):
 def systems():
     """name -> (L, y0, t1, exact final state or None)."""
     out = {}
-    T = float(pendulum.pendulum_period(2.5))
+    T = float(pendulum.period(2.5))
     y0 = (jnp.array([2.5]), jnp.array([0.0]))
     out["pendulum"] = (pendulum.lagrangian(), y0, 3 * T, y0)
     u0 = float(np.cos(0.5e-6))

@@ -11,11 +11,14 @@ and integrates them, one state or many at once.
     `vector_field`; from particle positions and constraints: `particle_lagrangian`,
     `generalized_force`, `dissipation_force`, `degrees_of_freedom`,
     `check_embedding`; a change of coordinates: `reparametrize`.
-- Trajectories: `simulate` (diffrax), or `LagrangianTerm` with the variational
-    integrators `VariationalMidpoint`, `GaussLegendre4`, `GaussLegendre6`.
+- Trajectories: `simulate` (diffrax), `simulate_batch` (many releases at once), or
+    `LagrangianTerm` with the variational integrators `VariationalMidpoint`,
+    `GaussLegendre4`, `GaussLegendre6`.
 - Periods of one-coordinate oscillations: `period`, `sweep_periods` (many amplitudes
-    at once, a `SweepResult`), the solver `Taylor`, the oracle `quadrature_period`.
-- Failure statuses: `status_message`, `STATUS_CODES`, `RESULTS`.
+    at once, a `SweepResult`), the solver `Taylor`, the oracle `quadrature_period`
+    (a `QuadratureResult`).
+- Failure statuses: `status_message`, `status_code`, `status_result`,
+    `STATUS_CODES`, `RESULTS`.
 - `lagrax.systems`: ready-made Lagrangians with their exact references.
 
 lagrax never changes JAX's configuration: for float64, where accuracy is claimed, call
@@ -43,7 +46,6 @@ from ._eom.reparametrize import reparametrize as reparametrize
 from ._period.period import period as period
 from ._period.quadrature import (
     quadrature_period as quadrature_period,
-    quadrature_status_message as quadrature_status_message,
     QuadratureResult as QuadratureResult,
 )
 from ._period.sweep import sweep_periods as sweep_periods, SweepResult as SweepResult

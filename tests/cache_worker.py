@@ -61,7 +61,12 @@ def _cases():
 
     def dense():
         sol = lagrax.simulate(
-            L, jnp.array([1.2]), jnp.array([0.0]), 0.0, 2.0, saveat=dfx.SaveAt(dense=True)
+            L,
+            jnp.array([1.2]),
+            jnp.array([0.0]),
+            0.0,
+            2.0,
+            saveat=dfx.SaveAt(dense=True),
         )
         return {"dense": jax.vmap(sol.evaluate)(jnp.linspace(0.0, 2.0, 7))[0]}
 
@@ -118,7 +123,9 @@ def _cases():
         "simulate_batch_taylor": batch,
         "simulate_batch_tsit5": lambda: batch(dfx.Tsit5()),
         "period": period,
-        "period_quarter_estimate": lambda: period(method="quarter", error_estimate=True),
+        "period_quarter_estimate": lambda: period(
+            method="quarter", error_estimate=True
+        ),
         "quadrature_period": quadrature,
         "grad_sweep": grad_sweep,
     }
@@ -135,9 +142,10 @@ CASES = (
     "simulate_midpoint simulate_gauss_legendre4 simulate_gauss_legendre6 "
     "simulate_three_coordinates simulate_saveat_ts simulate_dense simulate_event "
     "simulate_dt0 simulate_controller simulate_progress_meter simulate_batch_taylor "
-    "simulate_batch_tsit5 period period_quarter_estimate quadrature_period grad_sweep sweep_matched_estimate "
-    "sweep_matched_plain sweep_half_estimate sweep_half_plain sweep_full_estimate "
-    "sweep_full_plain sweep_quarter_estimate sweep_quarter_plain sweep_dopri8"
+    "simulate_batch_tsit5 period period_quarter_estimate quadrature_period grad_sweep "
+    "sweep_matched_estimate sweep_matched_plain sweep_half_estimate sweep_half_plain "
+    "sweep_full_estimate sweep_full_plain sweep_quarter_estimate sweep_quarter_plain "
+    "sweep_dopri8"
 ).split()
 
 
@@ -157,7 +165,8 @@ def main(out, names):
         result = jax.block_until_ready(cases[name]())
         seconds = time.perf_counter() - start
         for k, v in result.items():
-            arrays[f"{name}/{k}"] = np.asarray(v)
+            if v is not None:  # (a sweep without its estimate: None)
+                arrays[f"{name}/{k}"] = np.asarray(v)
         stats = {k: v - before.get(k, 0) for k, v in executables.STATS.items()}
         record[name] = {"seconds": seconds, **stats}
     np.savez(out, **arrays)

@@ -7,10 +7,10 @@ import jax
 import pytest
 
 
-# The library's disk cache of executables (`lagrax._cache.executables`) off, unless a test
-# turns it on: tests compile what they check, and write nothing outside their
-# temporary folders. The CLI, called in this process by some tests, keeps JAX's
-# persistent compilation cache under $XDG_CACHE_HOME: a folder of this run's own.
+# The library's disk cache of executables (`lagrax._cache.executables`) off, unless a
+# test turns it on: tests compile what they check, and write nothing outside their
+# temporary folders. XDG_CACHE_HOME: a folder of this run's own (the CLI's
+# `--distributed` runs keep JAX's persistent compilation cache under it).
 os.environ["LAGRAX_CACHE_DIR"] = ""
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="lagrax-tests-")
 atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], ignore_errors=True)

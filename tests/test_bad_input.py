@@ -342,21 +342,6 @@ PERIOD += [
     case("status_message-unknown", lambda: lagrax.status_message(99), "code"),
     case("status_message-float", lambda: lagrax.status_message(1.5), "code"),
     case("status_message-none", lambda: lagrax.status_message(None), "code"),
-    case(
-        "quadrature_status_message-str",
-        lambda: lagrax.quadrature_status_message("x"),
-        "code",
-    ),
-    case(
-        "quadrature_status_message-unknown",
-        lambda: lagrax.quadrature_status_message(99),
-        "code",
-    ),
-    case(
-        "quadrature_status_message-float",
-        lambda: lagrax.quadrature_status_message(2.5),
-        "code",
-    ),
 ]
 for entry, f in (("period", lagrax.period), ("sweep_periods", lagrax.sweep_periods)):
     for opt in ("atol", "t_max", "energy_tol"):
@@ -623,12 +608,12 @@ PARTICLES = [
 SYSTEMS = [
     case(
         "pendulum_period-str",
-        lambda: pendulum.pendulum_period("1.0"),
+        lambda: pendulum.period("1.0"),
         "amplitude",
     ),
     case(
         "pendulum_period-complex",
-        lambda: pendulum.pendulum_period(1.0 + 0.5j),
+        lambda: pendulum.period(1.0 + 0.5j),
         "amplitude",
     ),
     case(
@@ -645,7 +630,7 @@ SYSTEMS = [
     ),
     case(
         "cycloid_period-negative-R",
-        lambda: cycloid.cycloid_period(R=-1.0),
+        lambda: cycloid.period(R=-1.0),
         "R",
     ),
 ]

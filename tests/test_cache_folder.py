@@ -41,7 +41,9 @@ def _entries(path):
     return sorted(p for p in path.iterdir() if p.suffix == ".bin")
 
 
-def test_a_new_folder_and_its_entries_are_the_owners_alone(monkeypatch, tmp_path, fresh):
+def test_a_new_folder_and_its_entries_are_the_owners_alone(
+    monkeypatch, tmp_path, fresh
+):
     where = tmp_path / "a" / "cache"
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(where))
     x = jnp.arange(3.0)
@@ -109,7 +111,9 @@ def test_a_damaged_or_altered_entry_is_compiled_again(
     elif damage == "flipped":
         blob = blob[:-100] + bytes([blob[-100] ^ 1]) + blob[-99:]
     elif damage == "kernel":  # a header claiming a kernel bound to its process
-        blob = blob.replace(b'"kernels": []', b'"kernels": ["xla_ffi_python_cpu_callback"]')
+        blob = blob.replace(
+            b'"kernels": []', b'"kernels": ["xla_ffi_python_cpu_callback"]'
+        )
         assert b"python_cpu_callback" in blob
     else:
         blob = b"not an entry"

@@ -80,3 +80,26 @@ def test_new_values_change_the_outcome():
     np.testing.assert_allclose(flipped.periods, exact, rtol=1e-11)
     still = lagrax.sweep_periods(pendulum.lagrangian(g=0.0), q0, **kw)
     assert not np.any(still.ok)
+
+
+STRENGTH = 9.81
+
+
+def _reads_a_global(q, qdot, t):
+    return 0.5 * qdot[0] ** 2 + STRENGTH * jnp.cos(q[0])
+
+
+def test_a_global_changed_between_calls_is_seen(monkeypatch):
+    # The same function object, a value it reads changed: the next call uses it (no
+    # constants remembered per function object).
+    q0, v0 = jnp.array([1.0]), jnp.array([0.0])
+    a = lagrax.accelerations(_reads_a_global, q0, v0)
+    s = lagrax.simulate(_reads_a_global, q0, v0, 0.0, 1.0).ys[0]
+    monkeypatch.setitem(globals(), "STRENGTH", 1.62)
+    b = lagrax.accelerations(_reads_a_global, q0, v0)
+    t = lagrax.simulate(_reads_a_global, q0, v0, 0.0, 1.0).ys[0]
+    np.testing.assert_allclose(a, -9.81 * np.sin(1.0), rtol=1e-14)
+    np.testing.assert_allclose(b, -1.62 * np.sin(1.0), rtol=1e-14)
+    fresh = pendulum.lagrangian(g=1.62)
+    np.testing.assert_array_equal(t, lagrax.simulate(fresh, q0, v0, 0.0, 1.0).ys[0])
+    assert not np.array_equal(s, t)

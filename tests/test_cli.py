@@ -20,7 +20,7 @@ def run(capsys, *argv):
 
 
 def exact_pendulum(amplitude, g=1.0):
-    return np.asarray(pendulum.pendulum_period(amplitude, 1.0, g))
+    return np.asarray(pendulum.period(amplitude, r=1.0, g=g))
 
 
 USER_MODULE = textwrap.dedent(
@@ -315,8 +315,16 @@ def test_systems_lists_builtins_with_parameters_and_defaults(capsys):
     assert "exact period" in lines["pendulum"]
     assert "no exact period" in lines["asymmetric_well"]
     assert "2 coordinates" in lines["double_pendulum"]
+    # (Its drag is a force, which a period sweep does not take.)
+    assert "not for lagrax sweep" in lines["damped_pendulum"]
+    assert "quadrature" not in lines["damped_pendulum"]
     # A function-valued default by its name, not its repr with an address.
     assert "potential=harmonic " in lines["rectilinear"] and " at 0x" not in out
+
+
+def test_a_damped_system_is_refused_by_name(capsys):
+    rc, _, err = run(capsys, "sweep", "damped_pendulum", "--min", "0.1", "--max", "1")
+    assert rc == 2 and "damped_pendulum is damped" in err
 
 
 def test_builtin_without_exact_period_uses_quadrature_on_request(capsys, tmp_path):

@@ -133,7 +133,7 @@ def test_two_processes_each_get_the_one_process_result_bit_for_bit(tmp_path):
 
     np.testing.assert_allclose(
         one["periods"][1:-1],
-        np.asarray(pendulum.pendulum_period(np.linspace(0.05, 3.0, 30))),
+        np.asarray(pendulum.period(np.linspace(0.05, 3.0, 30))),
         rtol=1e-12,
     )
 
@@ -240,7 +240,7 @@ def test_cli_distributed_writes_one_file_and_resumes(tmp_path):
     from lagrax.systems import pendulum
 
     np.testing.assert_allclose(
-        data["period"], np.asarray(pendulum.pendulum_period(data["amplitude"])),
+        data["period"], np.asarray(pendulum.period(data["amplitude"])),
         rtol=1e-12,
     )  # fmt: skip
 

@@ -1,5 +1,5 @@
-"""The library's disk cache of compiled programs (`lagrax._cache.executables`): a program
-compiled once is loaded by a later process (here: after emptying this process's
+"""The library's disk cache of compiled programs (`lagrax._cache.executables`): a
+program compiled once is loaded by a later process (here: after emptying this process's
 table), for any parameter values; damaged entries are compiled again; the folder
 stays under its size."""
 

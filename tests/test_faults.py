@@ -105,7 +105,7 @@ def test_failing_lanes_counted_and_the_others_bit_identical(mixed_sweep):
     np.testing.assert_array_equal(got["num_steps"][~is_bad], ref["num_steps"])
     # And they are right: the same pendulum as lagrax.systems.pendulum.
     np.testing.assert_allclose(
-        ref["periods"], lagrax.systems.pendulum_period(GOOD), rtol=1e-8
+        ref["periods"], lagrax.systems.pendulum.period(GOOD), rtol=1e-8
     )
 
 

@@ -75,8 +75,9 @@ def test_help_prints_short_signatures():
         signature = str(inspect.signature(f))
         assert "jaxtyping" not in signature and "Union[" not in signature, name
     text = pydoc.render_doc(lagrax.simulate, renderer=pydoc.plaintext)
-    assert "simulate(L: Lagrangian, q0: Coordinates, qdot0: Coordinates" in text
-    assert "t0: RealScalarLike" in text
+    # (Annotations as their source text: diffrax's types by their public names.)
+    assert "simulate(L: 'Lagrangian', q0: 'Coordinates', qdot0: 'Coordinates'" in text
+    assert "t0: 'RealScalarLike'" in text and "solver: 'dfx.AbstractSolver'" in text
 
 
 def test_the_package_says_what_it_is_and_shows_only_its_own_names():

@@ -63,7 +63,9 @@ def test_rectilinear_recovers_newton(key):
     L = rectilinear.lagrangian(V, m=m)
     q, qdot = random_states(key, 1, 40, scale=1.5)
     got = jax.jit(jax.vmap(lambda a, b: lagrax.accelerations(L, a, b, 0.0)))(q, qdot)
-    np.testing.assert_allclose(got, rectilinear.acceleration(q, F, m=m), rtol=1e-12)
+    np.testing.assert_allclose(
+        got, rectilinear.acceleration(q, force_x=F, m=m), rtol=1e-12
+    )
 
 
 def test_explicit_time_mass():

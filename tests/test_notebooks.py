@@ -1,5 +1,6 @@
 """Every notebook in notebooks/ runs top to bottom at small size (LAGRAX_SMALL=1)."""
 
+import hashlib
 import os
 import pathlib
 
@@ -9,7 +10,8 @@ import pytest
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
-NOTEBOOKS = sorted((pathlib.Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
+ROOT = pathlib.Path(__file__).parent.parent
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
 # Each notebook compiles many sweep configurations even at small size: the first
 # tutorial runs every time, the others with `-m slow` (the gradient through the sweep
 # that the tautochrone notebook uses is checked every time in tests/test_gradients.py).
@@ -23,6 +25,15 @@ _CASES = [
     pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if p.stem in _SLOW else [])
     for p in NOTEBOOKS
 ]
+
+
+def _figures():
+    """The digest of every PNG of the repository (the README's figures among them)."""
+    return {
+        p: hashlib.sha256(p.read_bytes()).hexdigest()
+        for folder in ("notebooks", "benchmarks")
+        for p in (ROOT / folder).rglob("*.png")
+    }
 
 
 @pytest.mark.parametrize("path", _CASES)
@@ -41,7 +52,9 @@ def test_notebook_runs(path, monkeypatch, tmp_path):
         kernel_name="python3",
         resources={"metadata": {"path": tmp_path}},
     )
+    figures = _figures()
     client.execute()
+    assert _figures() == figures  # (a small run rewrites none of them)
     errors = [
         out
         for cell in nb.cells
@@ -55,4 +68,4 @@ def test_notebook_runs(path, monkeypatch, tmp_path):
 def test_notebooks_exist():
     names = {p.name for p in NOTEBOOKS}
     assert names, "notebooks/ has no notebooks"
-    assert os.path.isdir(pathlib.Path(__file__).parent.parent / "notebooks")
+    assert os.path.isdir(ROOT / "notebooks")

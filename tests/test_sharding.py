@@ -21,7 +21,7 @@ SCRIPT = textwrap.dedent(
     assert four.num_devices == 4 and one.num_devices == 1
     np.testing.assert_array_equal(np.asarray(four.status), 0)
     np.testing.assert_allclose(four.periods, one.periods, rtol=1e-15, atol=0)
-    np.testing.assert_allclose(four.periods, pendulum.pendulum_period(a), rtol=1e-12)
+    np.testing.assert_allclose(four.periods, pendulum.period(a), rtol=1e-12)
     # The default method runs its passes per device (two rounds, the second only for
     # the lanes the bound cannot vouch for, compacted within each device): the same
     # periods, statuses and steps as one device, lane by lane.
@@ -66,7 +66,7 @@ SMALL = textwrap.dedent(
     ok = np.arange(7) != 3
     assert int(one.status[3]) != 0 and np.all(np.asarray(one.status)[ok] == 0)
     np.testing.assert_allclose(np.asarray(two.periods)[ok],
-                               pendulum.pendulum_period(b[ok]), rtol=1e-12)
+                               pendulum.period(b[ok]), rtol=1e-12)
     np.testing.assert_allclose(two.error_estimate, one.error_estimate, rtol=1e-12)
     print("OK")
     """

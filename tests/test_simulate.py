@@ -195,3 +195,21 @@ def test_library_leaves_x64_alone():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     )
     assert out.stdout.strip() == "False"
+
+
+def test_taylor_steps_with_its_fallback_where_it_has_no_recurrence():
+    # asinh has no Taylor recurrence: Taylor() names it, Taylor(fallback=...) is the
+    # fallback's solve, eager and under jit.
+    L = lambda q, qd, t: 0.5 * qd[0] ** 2 - jnp.arcsinh(q[0]) ** 2
+    q0, v0 = jnp.array([0.5]), jnp.array([0.0])
+    kw = dict(rtol=1e-10, atol=1e-10)
+    with pytest.raises(NotImplementedError, match="asinh"):
+        lagrax.simulate(L, q0, v0, 0.0, 2.0, solver=lagrax.Taylor(), **kw)
+    taylor = lagrax.Taylor(fallback=dfx.Dopri8())
+    want = lagrax.simulate(L, q0, v0, 0.0, 2.0, solver=dfx.Dopri8(), **kw).ys[0]
+    got = lagrax.simulate(L, q0, v0, 0.0, 2.0, solver=taylor, **kw).ys[0]
+    np.testing.assert_array_equal(got, want)
+    f = jax.jit(
+        lambda q: lagrax.simulate(L, q, v0, 0.0, 2.0, solver=taylor, **kw).ys[0]
+    )
+    np.testing.assert_allclose(f(q0), want, rtol=1e-14)

@@ -9,6 +9,8 @@ import pytest
 
 import lagrax
 
+from .helpers import counting_compiles
+
 
 def oscillator(q, qdot, t):
     # x'' = -x: q(t) = q0 cos t + v0 sin t.
@@ -133,19 +135,10 @@ def test_other_solvers_run_vmap_of_simulate():
     np.testing.assert_allclose(sol.ys[0][:, -1], q, atol=1e-8)
     # Other releases and span, a rebuilt L with another stiffness (x'' = -4x): the
     # program compiled for the first call, no compile.
-    compiles = []
-
-    def listener(event, duration, **kwargs):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(event)
-
     q1 = np.array([[0.25], [-2.0]])
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
+    with counting_compiles() as compiles:
         again = jax.block_until_ready(run(q1, 0.75, k=4.0))
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    assert compiles == []
+        assert compiles() == 0
     np.testing.assert_allclose(again.ys[0][:, -1], q1 * np.cos(1.5), atol=1e-8)
     # Staged into a caller's `jit`: that program compiles the solve, same numbers.
     staged = jax.jit(lambda q: run(q, 1.0).ys[0][:, -1])(jnp.asarray(q0))

@@ -15,31 +15,25 @@ import lagrax
 from lagrax._cache import executables
 from lagrax.systems import pendulum
 
+from .helpers import counting_compiles
+
 
 Q0, V0 = jnp.array([1.0]), jnp.array([0.0])
 TS = jnp.linspace(0.0, 1.0, 5)
 TOL = dict(rtol=1e-10, atol=1e-10)
-_COMPILES = []
-
-
-def _on_duration(event, seconds, **kwargs):
-    if event == "/jax/core/compile/backend_compile_duration":
-        _COMPILES.append(seconds)
 
 
 @pytest.fixture
 def compiles():
     """The number of XLA compiles since the last call of the returned function."""
-    jax.monitoring.register_event_duration_secs_listener(_on_duration)
-    seen = [0]
+    with counting_compiles() as count:
+        seen = [0]
 
-    def since():
-        count, seen[0] = len(_COMPILES) - seen[0], len(_COMPILES)
-        return count
+        def since():
+            now, seen[0] = count() - seen[0], count()
+            return now
 
-    since()
-    yield since
-    jax.monitoring.unregister_event_duration_listener(_on_duration)
+        yield since
 
 
 def _pendulum(g, t1=1.0, **kwargs):
@@ -84,12 +78,11 @@ def test_another_body_compiles_its_own_program(compiles):
     np.testing.assert_allclose(sol.ys[0][:, 0], np.cos(TS), rtol=0, atol=1e-8)
 
 
-def _damped(zeta):
+def _damped(zeta, saveat=dfx.SaveAt(ts=TS)):
     """The damped oscillator q'' = -q - 2 zeta q' from rest at q = 1, by a force,
-    saved at `TS`."""
+    saved at `TS` (or as `saveat` says)."""
     spring = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - 0.5 * q[0] ** 2
     force = lambda q, qdot, t: -2.0 * zeta * qdot
-    saveat = dfx.SaveAt(ts=TS)
     sol = lagrax.simulate(spring, Q0, V0, 0.0, 1.0, force=force, saveat=saveat, **TOL)
     t = np.asarray(sol.ts)
     w = np.sqrt(1 - zeta**2)
@@ -136,10 +129,10 @@ def test_a_later_process_loads_the_program_of_a_rebuilt_lagrangian(cache):
 
 def test_a_later_process_with_a_force_finds_the_program_by_lowering(cache):
     folder, loads, new_process, lowerings = cache
-    q, exact = _damped(0.2)
+    q, exact = _damped(0.2, dfx.SaveAt(t1=True))
     new_process()
     lowerings.clear()
-    q_again, _ = _damped(0.2)
+    q_again, _ = _damped(0.2, dfx.SaveAt(t1=True))
     # (A function has no text for a pre-key: found by its lowered program.)
     assert loads[-2:] == [True, True] and len(lowerings) == 2
     np.testing.assert_array_equal(q_again, q)
@@ -149,25 +142,53 @@ def test_a_later_process_with_a_force_finds_the_program_by_lowering(cache):
 @pytest.mark.parametrize(
     "how", [dict(saveat=dfx.SaveAt(ts=TS * 2.0)), dict(dt0=0.01)], ids=["ts", "dt0"]
 )
-def test_a_later_process_loads_a_program_with_save_times_or_dt0(cache, how):
-    # (diffrax checks save times and dt0 by a callback in its program; simulate
-    # checks them on the host instead, so the program can be written to disk.)
+def test_a_program_with_save_times_or_dt0_is_kept_in_this_process(cache, how):
+    # (diffrax checks save times and dt0 by a callback in its program: such a
+    # program cannot be written to disk, so a later process compiles it again.)
     folder, loads, new_process, lowerings = cache
-    first = lagrax.simulate(pendulum.lagrangian(g=1.0), Q0, V0, 0.0, 2.0, **TOL, **how)
-    assert loads == [False, False] and len(list(folder.glob("p*.bin"))) == 2
+    run = lambda: lagrax.simulate(pendulum.lagrangian(), Q0, V0, 0.0, 2.0, **TOL, **how)
+    first = run()
+    assert loads == [False, False] and len(list(folder.glob("p*.bin"))) == 1
+    rebuilt = run()
+    assert len(loads) == 2  # (this process's programs: nothing looked for on disk)
     new_process()
-    lowerings.clear()
-    again = lagrax.simulate(pendulum.lagrangian(g=1.0), Q0, V0, 0.0, 2.0, **TOL, **how)
-    assert loads[2:] == [True, True] and lowerings == []
-    np.testing.assert_array_equal(again.ys[0], first.ys[0])
-    np.testing.assert_array_equal(again.ts, first.ts)
+    again = run()
+    assert loads[2:] == [True, False]  # (the start's program loaded; the solve's not)
+    for sol in (rebuilt, again):
+        np.testing.assert_array_equal(sol.ys[0], first.ys[0])
+        np.testing.assert_array_equal(sol.ts, first.ts)
     if "saveat" in how:
         np.testing.assert_array_equal(again.ts, TS * 2.0)
 
 
+@pytest.mark.parametrize("t1", [2.0, -2.0], ids=["forward", "backward"])
+def test_a_fixed_step_solve_is_loaded_by_a_later_process(cache, t1):
+    # (Its step goes to diffrax in the controller, which diffrax does not check by a
+    # callback: the program is written to disk.)
+    folder, loads, new_process, lowerings = cache
+    dt0 = 0.1 * np.sign(t1)
+    run = lambda g: lagrax.simulate(
+        pendulum.lagrangian(g=g), Q0, V0, 0.0, t1, solver=dfx.Euler(), dt0=dt0
+    )
+    first = run(1.0)
+    assert loads == [False, False] and len(list(folder.glob("p*.bin"))) == 2
+    new_process()
+    lowerings.clear()
+    again = run(1.0)
+    assert loads[2:] == [True, True] and lowerings == []
+    np.testing.assert_array_equal(again.ys[0], first.ys[0])
+    # The steps diffrax takes with `ConstantStepSize()` and this `dt0`, bit for bit.
+    plain = dfx.diffeqsolve(
+        dfx.ODETerm(lagrax.vector_field(pendulum.lagrangian(g=1.0))), dfx.Euler(),
+        0.0, t1, dt0, (Q0, V0),
+    )  # fmt: skip
+    np.testing.assert_array_equal(first.ys[0], plain.ys[0])
+    assert first.stats["num_steps"] == plain.stats["num_steps"] == 20
+
+
 def test_a_failed_solve_loaded_from_disk_still_raises(cache):
     folder, loads, new_process, lowerings = cache
-    many = dict(saveat=dfx.SaveAt(ts=TS * 10.0), max_steps=4, **TOL)
+    many = dict(max_steps=4, **TOL)
     sol = lagrax.simulate(pendulum.lagrangian(), Q0, V0, 0.0, 10.0, throw=False, **many)
     assert sol.result == dfx.RESULTS.max_steps_reached
     new_process()

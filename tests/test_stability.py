@@ -161,7 +161,7 @@ def test_cycloid_away_from_cusp_theta_form_is_fine():
 
 
 def _pendulum_period_error(dtype, tol):
-    T = float(pendulum.pendulum_period(2.5))
+    T = float(pendulum.period(2.5))
     sol = lagrax.simulate(
         pendulum.lagrangian(),
         jnp.array([2.5], dtype),

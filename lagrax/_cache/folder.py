@@ -123,9 +123,7 @@ def read(path) -> tuple[dict, bytes] | None:
         st = os.fstat(fh.fileno())
         if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_BYTES:
             return None
-        if hasattr(os, "getuid") and (
-            st.st_uid != os.getuid() or st.st_mode & 0o022
-        ):
+        if hasattr(os, "getuid") and (st.st_uid != os.getuid() or st.st_mode & 0o022):
             return None
         blob = fh.read()
     if not blob.startswith(_MAGIC):

@@ -70,11 +70,15 @@ def _cache(action) -> int:
 
     if action == "clear":
         files, size = folder.clear()
-        print(f"removed {files} files ({size / 2**20:.1f} MiB) from {folder.location()}")
+        print(
+            f"removed {files} files ({size / 2**20:.1f} MiB) from {folder.location()}"
+        )
         return 0
     info = folder.info()
     print(f"folder   {info['folder'] or '(none)'}")
     print(f"state    {info['state']}")
     print(f"entries  {info['entries']} files, {info['bytes'] / 2**20:.1f} MiB")
-    print(f"limit    {info['max_bytes'] / 2**20:.0f} MiB (least recently used go first)")
+    print(
+        f"limit    {info['max_bytes'] / 2**20:.0f} MiB (least recently used go first)"
+    )
     return 0

@@ -130,6 +130,11 @@ def builtin(name, params):
     from ..systems import SweepSpec
 
     module = builtin_module(name)
+    if callable(getattr(module, "force", None)):
+        raise UsageError(
+            f"{name} is damped (its `force`), and a period sweep takes no force: "
+            f"integrate it with lagrax.simulate(..., force=systems.{name}.force())"
+        )
     spec = getattr(module, "SWEEP", None) or SweepSpec(name)
     L = _call_factory(spec.lagrangian or module.lagrangian, params, f"system {name!r}")
     amplitudes = spec.amplitudes
@@ -444,6 +449,10 @@ def systems_lines():
         kws, _ = keywords_of(factory)
         params = " ".join(f"{k}={_default_text(d)}" for k, d in kws.items())
         notes = []
+        if callable(getattr(module, "force", None)):
+            notes.append("damped (its force): not for lagrax sweep")
+            lines.append(f"{name:<{width}}  {params}  [{'; '.join(notes)}]")
+            continue
         try:
             target = builtin(name, {})
             check_one_dof(target)

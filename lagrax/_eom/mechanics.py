@@ -25,6 +25,7 @@ from jax.extend import core as jax_core
 
 from .._checks import check_solvable, is_concrete, prepare as _prepare
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
+from .._jaxpr.canonical import BoundLagrangian, canonical_lagrangian
 from .._jaxpr.fusion import fusion_is_off, one_fusion
 from .._jaxpr.scalarize import scalarized
 from .._taylor.solve import definite_solve
@@ -244,13 +245,24 @@ def accelerations(
     """
     q, qdot, t = _prepare(L, q, qdot, t, force)
     if not is_concrete(q, qdot, t):
-        # Traced (a user's vector field): the same program `vector_field` runs. A
-        # nested `jit` call here made a Tsit5 solve of the particle-style double
-        # pendulum ~1.9x slower (XLA compiled the call apart from its caller).
+        # Traced (a user's vector field): the same program `vector_field` runs,
+        # inline: XLA compiles a nested `jit` call apart from its caller, which
+        # slows the caller's solve (benchmarks/README.md).
         return _accelerations(L, q, qdot, t, force)[0]
-    qddot, (M, ok) = _accelerations_jit(L, q, qdot, t, force)
+    qddot, (M, ok) = _accelerations_jit(_bound(L, q), q, qdot, t, force)
     check_solvable(qddot, M, ok, q, qdot, t)
     return qddot
+
+
+def _bound(L, q):
+    """`L` as its canonical form bound to its constants, read at this call (a
+    rebuilt `L` reuses the compiled program; a value `L` reads that changed since an
+    earlier call is seen), or `L` itself where it has none."""
+    try:
+        L_c, consts = canonical_lagrangian(L, q.dtype, q.shape[0])
+    except Exception:  # noqa: BLE001 -- traced as it is (its errors raised there)
+        return L
+    return BoundLagrangian(L_c, tuple(consts))
 
 
 def mass_matrix(

@@ -27,7 +27,6 @@ a missed reuse, never a wrong one.
 """
 
 import collections
-import weakref
 from collections.abc import Callable
 
 import equinox as eqx
@@ -36,15 +35,12 @@ import numpy as np
 from jax.extend import core as jex_core
 
 
-__all__ = ["canonical_lagrangian"]
+__all__ = ["BoundLagrangian", "canonical_lagrangian"]
 
 # Canonical functions by structure, most recently used last; bounded like the
 # caches of compiled programs that hold them.
 _INTERNED: collections.OrderedDict = collections.OrderedDict()
 _MAX_INTERNED = 256
-# `(canonical, consts)` per Lagrangian object and dtype, for repeated calls with the
-# same function outside any transformation (no trace of `L` per call).
-_BY_OBJECT = weakref.WeakKeyDictionary()
 
 
 class CanonicalLagrangian:
@@ -116,34 +112,30 @@ def canonical_lagrangian(
     constants, which are `consts` (module docstring). The float array fields of a
     pytree `L` (an `eqx.Module`) come first in `consts`."""
     dtype = np.dtype(dtype)
-    # The one private JAX read in the library: whether any transformation is active
-    # (a memoized `consts` could otherwise hold a tracer of an enclosing trace, which
-    # `L`'s closure may capture invisibly). JAX has no public query; where it is gone
-    # the memo is skipped and `L` is traced per call, which is only slower.
-    clean = getattr(jax._src.core, "trace_state_clean", None)
-    clean = clean is not None and clean()
-    if clean:
-        try:
-            known = _BY_OBJECT.get(L)
-        except TypeError:  # not weakly referenceable or not hashable
-            known = None
-        if known is not None and (dtype, n) in known:
-            canon, consts = known[dtype, n]
-            return _intern(canon), list(consts)
+    # Traced at every call (a fraction of a millisecond), not memoized per function
+    # object: `L` may read a global or a closure cell that changed since its last
+    # call, which a memoized `consts` would miss silently.
     dynamic, static = eqx.partition(L, eqx.is_inexact_array)
     arrays, treedef = jax.tree.flatten(dynamic)
     f = _WithParameters(static, treedef) if arrays else L
     z = np.zeros((n,), dtype)
-    closed = jax.make_jaxpr(f)(z, z, np.zeros((), dtype), *arrays)
+    # (A new function object per call: JAX keeps traces per function object, which
+    # would hand back the constants of an earlier call.)
+    closed = jax.make_jaxpr(lambda *a: f(*a))(z, z, np.zeros((), dtype), *arrays)
     canon, lifted_values, kept_consts = _canonical(closed, len(arrays))
     canon = _intern(canon)
     consts = list(arrays) + lifted_values + kept_consts
-    if clean and not any(isinstance(c, jax.core.Tracer) for c in consts):
-        try:
-            _BY_OBJECT.setdefault(L, {})[dtype, n] = (canon, tuple(consts))
-        except TypeError:
-            pass
     return canon, consts
+
+
+class BoundLagrangian(eqx.Module):
+    """A canonical Lagrangian with its constants: `L(q, qdot, t)`."""
+
+    L: "CanonicalLagrangian"
+    consts: tuple
+
+    def __call__(self, q, qdot, t):
+        return self.L(q, qdot, t, *self.consts)
 
 
 def _intern(canon):

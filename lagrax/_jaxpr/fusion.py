@@ -16,14 +16,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._compat import accepted_options
+
 
 # XLA's CPU fusion emitters (its default) cut a large fused Taylor step into
 # functions at values with several readers and recompute them per caller; its
-# elemental emitters keep one vectorized loop (the factors measured are in
-# benchmarks/README.md: tens to hundreds of times for a Taylor trajectory step and a
-# sweep's forward-mode derivative). A compile option of lagrax's own programs, not a
-# global flag: inside a caller's `jit`, the caller's options apply.
+# elemental emitters keep one vectorized loop (the factors measured for a Taylor
+# trajectory step and a sweep's forward-mode derivative: benchmarks/README.md). A
+# compile option of lagrax's own programs, not a global flag: inside a caller's
+# `jit`, the caller's options apply.
 ELEMENTAL = {"xla_cpu_use_fusion_emitters": False}
+
+
+def elemental_options() -> dict:
+    """`ELEMENTAL` where the installed XLA takes it, else `{}` (XLA's defaults: the
+    same results, slower)."""
+    return accepted_options(ELEMENTAL)
 
 
 _STATE = threading.local()
@@ -67,7 +75,7 @@ def one_fusion(values: dict, *, branch_free: bool = False) -> dict:
     `branch_free=True` pairs each value with the identity by a select instead of a
     stack. XLA emits a stack as a branch per value, and each branch's code
     recomputes what the values share (LLVM merges the copies only in small
-    programs: ~4x the work for a chain of four pendulums' Taylor coefficients). A
+    programs; benchmarks/README.md). A
     select reads each value twice, so XLA keeps an expensive operation (a division,
     a square root, a transcendental) out of the fusion: for values that share only
     cheap work, or whose expensive part is cheap to compute in loops of its own.

@@ -104,8 +104,8 @@ def _bind(primitive, args, params):
 
     The tangent directions of the forward-over-reverse pass are mostly zeros; JAX
     cannot drop `x * 0` (it is NaN for infinite `x`) and XLA may not either, so
-    without folding they cost as much as the useful arithmetic (2x for a
-    one-pendulum chain). Here a known zero or one is folded as JAX's own symbolic
+    without folding they cost as much as the useful arithmetic
+    (benchmarks/README.md). Here a known zero or one is folded as JAX's own symbolic
     zero tangents would be: `x * 0 = 0`, `x + 0 = x`, `x * 1 = x`, `0 / x = 0`.
     """
     if all(_known(a) for a in args):

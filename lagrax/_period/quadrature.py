@@ -58,11 +58,6 @@ ROOT_FAILED = ROOT_FIND_FAILED
 NONFINITE = NONFINITE_PERIOD
 
 
-def quadrature_status_message(code) -> str:
-    """`lagrax.status_message`, under its old name (the codes are shared)."""
-    return status_message(code)
-
-
 class QuadratureResult(eqx.Module):
     r"""What `lagrax.quadrature_period` returns.
 

@@ -20,7 +20,7 @@ from .._checks import (
     lane_count,
 )
 from .._jaxpr.canonical import canonical_lagrangian
-from .._jaxpr.fusion import ELEMENTAL
+from .._jaxpr.fusion import elemental_options
 from .._results import status_message, SUCCESS
 from .._taylor.solver import Taylor
 from .autodiff import forward_jacobian, forward_mode, periods_diff, tangents_of
@@ -353,7 +353,7 @@ def _sweep_call_jvp(L, m, devices, primals, tangents):
         # disk cache of executables (`cached_call`): a later process loads it.
         def jacobian(q0, consts, with_q, wanted):
             jac = _jacobian_jit(L, m, devices, elemental, with_q, wanted)
-            options = ELEMENTAL if elemental else None
+            options = elemental_options() if elemental else None
             origin = (_jacobian_jit, L, m, devices, elemental, with_q, wanted)
             return executables.cached_call(
                 jac, options, q0, order, consts, *rest, origin=origin,
@@ -377,7 +377,8 @@ def _jacobian_jit(L, m, devices, elemental, with_q, wanted):
         run = lambda q0, consts: jitted(q0, order, consts, *rest)
         return forward_jacobian(run, q0, consts, with_q, wanted)
 
-    return jax.jit(jacobian, compiler_options=ELEMENTAL if elemental else None)
+    options = elemental_options() if elemental else None
+    return jax.jit(jacobian, compiler_options=options)
 
 
 _sweep_call.defjvp(_sweep_call_jvp, symbolic_zeros=True)
@@ -393,7 +394,7 @@ def _sweep_jit(L, m, devices, elemental=False):
     """`_sweep_body` compiled for one Lagrangian, method and device set: a plain
     `jax.jit` (its C++ dispatch), not `eqx.filter_jit`, whose Python-side flattening
     and hashing of the static arguments cost a noticeable part of a sweep."""
-    options = ELEMENTAL if elemental else None
+    options = elemental_options() if elemental else None
     return jax.jit(
         functools.partial(_sweep_body, L, m, devices), compiler_options=options
     )

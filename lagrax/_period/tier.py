@@ -4,9 +4,9 @@ The specialized program (L's equations compiled in) runs fastest but costs secon
 of XLA compile for each new Lagrangian. The tape path (`mechanics.TapeMechanics`,
 `lagrax._stepper.tape.TapeTaylorStepper`) runs the same period program with $L$ as
 data: its executable is the same for every Lagrangian whose tapes fit its sizes,
-compiled once per machine and kept on disk (`lagrax._cache.executables`), so a new $L$ costs
-the tracing of its tapes. It runs slower per step (an interpreter over the tape's
-nodes), so it is taken, like a JIT's first tier, for eager sweeps until the
+compiled once per machine and kept on disk (`lagrax._cache.executables`), so a new
+$L$ costs the tracing of its tapes. It runs slower per step (an interpreter over
+the tape's nodes), so it is taken, like a JIT's first tier, for eager sweeps until the
 amplitudes swept with one Lagrangian and configuration would repay the specialized
 compile (`SPECIALIZE_AFTER`), and then the specialized program takes over.
 

@@ -67,7 +67,7 @@ class RungeKuttaStepper(AbstractStepper):
         try:
             return _stepper_of(solver)
         except TypeError:  # an unhashable solver (array fields): read it anew
-            return _stepper_of.__wrapped__(solver)
+            return _read_stepper(solver)
 
     def stages(self, accel, s, x, v, a, h):
         """The state at `s + h`, the acceleration there (FSAL) and the error estimate
@@ -104,8 +104,7 @@ class RungeKuttaStepper(AbstractStepper):
         return StepResult(x1, v1, a1, raw.h, err, None, extras)
 
 
-@functools.lru_cache(maxsize=32)
-def _stepper_of(solver) -> RungeKuttaStepper | None:
+def _read_stepper(solver) -> RungeKuttaStepper | None:
     tab = type(solver).tableau
     if getattr(tab, "implicit", False) or tab.b_error is None:
         return None
@@ -116,3 +115,6 @@ def _stepper_of(solver) -> RungeKuttaStepper | None:
     fsal = bool(tab.fsal) and a[-1] == b[:-1] and c[-1] == 1.0
     order = float(solver.error_order(dfx.ODETerm(lambda t, y, args: y)))
     return RungeKuttaStepper(a, b, e, c, fsal, order)
+
+
+_stepper_of = functools.lru_cache(maxsize=32)(_read_stepper)

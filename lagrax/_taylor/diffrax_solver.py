@@ -28,8 +28,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from diffrax._term import WrapTerm  # (how diffeqsolve integrates backwards in time)
 
+from .._compat import unwrap_time
 from .._jaxpr.fusion import one_fusion
 from . import compact
 
@@ -59,9 +59,7 @@ class TaylorInterpolation(dfx.AbstractLocalInterpolation):
 
 def _ode_term(terms):
     """The `diffrax.ODETerm` inside `terms` (through diffrax's time reversal)."""
-    inner = terms
-    while isinstance(inner, WrapTerm):
-        inner = inner.term
+    inner, _ = unwrap_time(terms)
     if not isinstance(inner, dfx.ODETerm):
         raise TypeError(
             "lagrax.Taylor solves ordinary differential equations: `terms` must be a "

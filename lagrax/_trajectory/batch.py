@@ -42,7 +42,7 @@ from .._checks import (
 )
 from .._custom_types import GeneralizedForce, Lagrangian
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
-from .._jaxpr.fusion import ELEMENTAL
+from .._jaxpr.fusion import elemental_options
 from .._stepper.base import LaneField
 from .._stepper.taylor import TaylorStepper
 from .._taylor import compact
@@ -336,7 +336,7 @@ def _compiled(cpu, devices):
     jitted = jax.jit(
         lambda cfg, shape, *args: _assemble(*shape, *_looped(devices)(cfg, *args)),
         static_argnums=(0, 1),
-        compiler_options=ELEMENTAL if cpu else None,
+        compiler_options=elemental_options() if cpu else None,
     )
     return jitted
 
@@ -347,7 +347,7 @@ def _compact_program(cfg, shape, cpu, devices):
     takes the tape as its last argument and depends on its size class only."""
     return jax.jit(
         lambda *args: _assemble(*shape, *_looped(devices)(cfg, *args)),
-        compiler_options=ELEMENTAL if cpu else None,
+        compiler_options=elemental_options() if cpu else None,
     )
 
 
@@ -377,8 +377,9 @@ def _looped(devices):
 
 
 def _saveat_plan(saveat, t0, t1):
-    """`(ts, save_t1)` for a `SaveAt` the loop supports (`t1`, `ts`, `t0`), else
-    None (then `vmap(simulate)` does it)."""
+    """`(ts, save_t1)` for a `SaveAt` the loop supports (states at `ts`, at `t1`, or
+    both), else `"vmap"` (then `jax.vmap` of `simulate` runs it: `t0=True`, `steps`,
+    `dense`, a `fn`, several `SubSaveAt`s)."""
     if saveat is None:
         return None, True
     sub = saveat.subs
@@ -495,20 +496,12 @@ def simulate_batch(
             bound = L
         args = (bound, force, solver, saveat, max_steps, kwargs)
         args += (q0, qdot0, t0, t1, rtol, atol)
-        sol = None
         if devices[0].platform == "cpu":
             # One program, kept for the next call with the same static parts (run op
             # by op, the vmapped solve compiles its loop again at every call), with
             # XLA's elemental emitters: the lane-batched step stays one loop.
-            try:
-                sol = elemental(_vmapped)(*args)
-            except TypeError as error:  # (an unhashable static part: op by op)
-                if "unhashable" not in str(error):
-                    raise
-            except ValueError as error:
-                if not _staged(error):
-                    raise
-        if sol is None:
+            sol = elemental(_vmapped)(*args)
+        else:
             sol = _vmapped(*args)
         return _raise_if_failed(sol, throw)
     ts, save_t1 = plan
@@ -533,15 +526,18 @@ def simulate_batch(
     jitted = _compiled(cpu, devices[:D])
     shape = (B, q0.shape[1], ts is not None, save_t1)
     if is_concrete(args, ts_arr, consts):  # (a later process loads it from disk,
-        options = ELEMENTAL if cpu else None  # found by its pre-key: no tracing)
+        options = elemental_options() if cpu else None  # (pre-key: no tracing)
         call = (jitted, options, cfg, shape, *args, ts_arr, consts)
         out = _tiered(call, (_compiled, cpu, devices[:D]), q0.shape[1], dtype)
     else:
         try:
             out = jitted(cfg, shape, *args, ts_arr, consts)
-        except ValueError as error:
-            if not _staged(error):
+        except ValueError:
+            if not cpu:
                 raise
+            # JAX refuses compile options on a `jit` staged into a caller's program
+            # (its `jit`, `grad`), which compiles it with its own (the docstring
+            # says which); under `vmap` or `jvp` it takes them.
             jitted = _compiled(False, devices[:D])
             out = jitted(cfg, shape, *args, ts_arr, consts)
     ts_out, qs, vs, result, nsteps, zeros, failed = out
@@ -772,13 +768,6 @@ def _per_release(x, name, B, dtype):
             f"`{name}` must be a scalar or of shape ({B},); got {x.shape}."
         )
     return x
-
-
-def _staged(error: ValueError) -> bool:
-    """Whether `error` is JAX's refusal of compiler options on a `jit` staged into a
-    caller's `jit` (or `grad`): there the caller's program compiles the call, with
-    the caller's options (the docstring says which)."""
-    return "compiler_options" in str(error)
 
 
 def _vmapped(

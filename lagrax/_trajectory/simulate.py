@@ -1,4 +1,8 @@
-"""The one place that talks to diffrax: vector fields and `simulate`."""
+"""`simulate`: Lagrange's equations through `diffrax.diffeqsolve`, an eager call
+compiled once per body of `L` (and kept by the library's disk cache); and
+`vector_field`, for a diffrax term of your own."""
+
+from __future__ import annotations
 
 import dataclasses
 import functools
@@ -9,8 +13,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.extend import core as jex_core
 
+from .._cache.executables import cached_call
 from .._checks import (
     as_time,
     check_callable,
@@ -23,24 +27,38 @@ from .._checks import (
     prepare,
     tolerances,
 )
+from .._compat import top_level
 from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScalarLike
 from .._eom.mechanics import _accelerations, _accelerations_jit
-from .._cache.executables import cached_call
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
-from .._jaxpr.fusion import ELEMENTAL
+from .._jaxpr.fusion import elemental_options
 from .._taylor.solver import Taylor
 from .term import _LagrangeVectorField, BoundLagrangian, LagrangianTerm
 
 
 def elemental(fn):
-    """`fn(*args, **kwargs)` compiled by `jax.jit` with `ELEMENTAL`, every leaf that
-    is not an array static (as `equinox.filter_jit` splits them)."""
+    """`fn(*args, **kwargs)` compiled by `jax.jit` with XLA's elemental emitters
+    (`elemental_options`), every leaf that is not an array static (as
+    `equinox.filter_jit` splits them). With a static leaf that is not hashable,
+    `fn` itself (op by op); staged into a caller's `jit` or `grad`, where JAX
+    refuses compile options, `fn` itself too: the caller's program compiles it, with
+    its own options."""
 
     def call(*args, **kwargs):
         leaves, treedef = jax.tree.flatten((args, kwargs))
         arrays = [x if eqx.is_array(x) else None for x in leaves]
         static = tuple(None if eqx.is_array(x) else x for x in leaves)
-        return _elemental_jit(fn, treedef, static)(arrays)
+        try:
+            hash(static)
+        except TypeError:
+            return fn(*args, **kwargs)
+        jitted = _elemental_jit(fn, treedef, static)
+        if top_level():
+            return jitted(arrays)
+        try:  # (under `vmap` or `jvp` JAX takes the options)
+            return jitted(arrays)
+        except ValueError:  # (staged into a caller's `jit` or `grad`: refused)
+            return fn(*args, **kwargs)
 
     return call
 
@@ -52,7 +70,7 @@ def _elemental_jit(fn, treedef, static):
         args, kwargs = jax.tree.unflatten(treedef, leaves)
         return fn(*args, **kwargs)
 
-    return jax.jit(run, compiler_options=ELEMENTAL)
+    return jax.jit(run, compiler_options=elemental_options())
 
 
 def vector_field(
@@ -111,9 +129,9 @@ def default_controller(rtol, atol, t0, t1, dtype):
 def check_save_times(saveat: dfx.SaveAt, t0, t1):
     """Raises on save times (`saveat.ts`, of every `SubSaveAt`) that `diffrax`
     refuses, where they and `t0`, `t1` are concrete: from t0 towards t1 (one way, as
-    diffrax asks) and between them; also 1-D, real and finite. Compared as exact
-    values: diffrax rounds them to its time dtype first, which keeps their order, so
-    nothing it refuses passes here (an eager call's program relies on it)."""
+    diffrax asks) and between them; also 1-D, real and finite. An error here names
+    the argument and the first time at fault, where diffrax's own check (kept in
+    its program) would raise from a callback."""
     subs = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, dfx.SubSaveAt))
     for sub in subs:
         ts = getattr(sub, "ts", None)
@@ -186,23 +204,25 @@ def simulate(
 ) -> dfx.Solution:
     r"""Integrates Lagrange's equations from $(q_0, \dot q_0)$ at $t_0$ to $t_1$.
 
-    Solves $\frac{d}{dt}(q, \dot q) = (\dot q, \ddot q)$ with $\ddot q$ from
-    `lagrax.accelerations` using `diffrax.diffeqsolve`. Works under `jit` and `vmap`
+    Solves $\frac{d}{dt}(q, \dot q) = (\dot q, \ddot q)$, with $\ddot q$ from
+    `lagrax.accelerations`, by `diffrax.diffeqsolve`. Works under `jit` and `vmap`
     (over `q0`, `qdot0`, times, tolerances); times and tolerances are arrays, so
     changing them does not recompile. $t_1 < t_0$ integrates backwards in time.
-    Many releases at once: `lagrax.simulate_batch` (lanes refilled as trajectories
-    end); under `vmap` on a GPU, past ~10^5 releases map in pieces
-    (`jax.lax.map(f, xs, batch_size=100_000)` inside your `jit`): XLA compiles one
-    very wide batch into a slower program (benchmarks/README.md). On a CPU, give your
-    `jit` of a vmapped `simulate` XLA's elemental emitters,
-    `jax.jit(f, compiler_options={"xla_cpu_use_fusion_emitters": False})`, as an
-    eager call takes them: 256 double pendulums (Dopri8) compile 25% faster and run
-    1.4-2x faster (benchmarks/README.md). An eager call is
-    compiled per body of `L`: a rebuilt `L` with new parameter values (a parameter
-    scan) reuses the program, its values reaching it as arguments, and on a CPU a
-    later process loads it from the library's disk cache of executables (without
-    tracing it where the call holds no function of yours besides `L`, such as a
-    `force` or an event's condition).
+
+    An eager call is compiled once per body of `L`: a rebuilt `L` with new
+    parameter values reuses the program (its values reach it as arguments), and on
+    a CPU a later process loads it from the library's disk cache. Not a call with
+    `SaveAt(ts=...)`, a `dt0` and an adaptive solver, or a progress meter: each
+    puts a callback to Python in the program (diffrax checks save times and `dt0`
+    that way), which ties it to its process.
+
+    Many releases at once: `lagrax.simulate_batch`, or `jax.vmap` of `simulate`
+    inside your `jit`. On a CPU, give that `jit` XLA's elemental emitters,
+    `compiler_options={"xla_cpu_use_fusion_emitters": False}`, as eager calls
+    take them (where the installed XLA knows the option): they compile and run
+    the batched solve faster. On a GPU, map a very wide batch in pieces
+    (`jax.lax.map(f, xs, batch_size=100_000)`): XLA compiles one very wide batch
+    into a slower program. Figures: benchmarks/README.md.
 
     **Arguments:**
 
@@ -210,7 +230,8 @@ def simulate(
     - `q0`, `qdot0`: initial coordinates and velocities, 1-D float arrays of length n.
     - `t0`, `t1`: start and end times.
     - `force`: optional generalized force `force(q, qdot, t) -> Q`.
-    - `solver`: any diffrax solver (default `Tsit5()`).
+    - `solver`: any diffrax solver (default `Tsit5()`); `lagrax.Taylor(fallback=...)`
+        steps with its fallback where L has a primitive without a Taylor recurrence.
     - `saveat`: a `diffrax.SaveAt` (default: the state at `t1` only).
     - `rtol`, `atol`: tolerances of the default PID step-size controller.
     - `dt0`: initial step (default: chosen by diffrax); required for fixed-step solvers.
@@ -245,6 +266,20 @@ def simulate(
     sol = lagrax.simulate(L, jnp.array([1.0]), jnp.array([0.0]), 0.0, 10.0)
     ```
     """
+    if isinstance(solver, Taylor) and solver.fallback is not None:
+        # Where L's accelerations have a primitive without a Taylor recurrence,
+        # tracing the Taylor solve raises `NotImplementedError`: the caller allowed
+        # the fallback to step instead.
+        kwargs = dict(
+            force=force, saveat=saveat, rtol=rtol, atol=atol, dt0=dt0,
+            max_steps=max_steps, throw=throw, stepsize_controller=stepsize_controller,
+            event=event, adjoint=adjoint, progress_meter=progress_meter,
+        )  # fmt: skip
+        try:
+            taylor = dataclasses.replace(solver, fallback=None)
+            return simulate(L, q0, qdot0, t0, t1, solver=taylor, **kwargs)
+        except NotImplementedError:
+            return simulate(L, q0, qdot0, t0, t1, solver=solver.fallback, **kwargs)
     q0, qdot0, t0 = prepare(L, q0, qdot0, t0, force, names=("q0", "qdot0", "t0"))
     dtype = q0.dtype
     t1 = as_time(t1, "t1", dtype)
@@ -288,8 +323,8 @@ def simulate(
         check_save_times(saveat, t0, t1)
     eager = is_concrete(q0, qdot0, t0, t1, dt0, saveat)
     # (The cached eager solve on a CPU compiles with XLA's elemental emitters: a
-    # Taylor step needs them, and a Runge-Kutta solve compiles in 30-50% less time
-    # for a step 0-15% slower, repaid past a million steps; benchmarks/README.md.)
+    # Taylor step needs them, and a Runge-Kutta solve compiles in less time for a
+    # step barely slower, repaid only by very long runs; benchmarks/README.md.)
     on_cpu = jax.default_backend() == "cpu"
     taylor_cpu = isinstance(solver, Taylor) and on_cpu
     call = None
@@ -313,12 +348,9 @@ def simulate(
             check_solvable(qddot, M, ok, q0, qdot0, t0, names=("q0", "qdot0", "t0"))
         if stepsize_controller is None:
             stepsize_controller = _default(solver, rtol, atol, t0, t1, dtype)
-        # Under a trace the enclosing program compiles the solve: its body is traced
-        # in place, where a nested jit would be traced and then batched again under
-        # `vmap`.
+        # (Under a trace, diffrax's jit is staged into the enclosing program, which
+        # compiles it.)
         solve = dfx.diffeqsolve
-        if not eager:
-            solve = getattr(solve, "__wrapped__", solve)
         if eager and taylor_cpu:
             solve = elemental(dfx.diffeqsolve)
         sol = _diffeqsolve(
@@ -395,6 +427,32 @@ def _join(static, arrays):
     return jax.tree.unflatten(
         treedef, [next(arrays) if _is_hole(x) else x for x in leaves]
     )
+
+
+class _ConstantStep(dfx.AbstractStepSizeController):
+    """`diffrax.ConstantStepSize` holding its step `dt0` itself, for `diffeqsolve`
+    called with `dt0=None`: given an array `dt0`, diffrax checks its sign by a
+    callback to Python, which keeps a program off the disk cache (`simulate` checks
+    it on the host). The steps are `ConstantStepSize`'s, with the `dt0` diffrax
+    would give it (in its time dtype, times the direction of time)."""
+
+    dt0: object
+
+    def wrap(self, direction):
+        return _ConstantStep(self.dt0 * direction)
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        dt0 = jnp.asarray(self.dt0, jnp.result_type(t0))
+        return dfx.ConstantStepSize().init(
+            terms, t0, t1, y0, dt0, args, func, error_order
+        )
+
+    def adapt_step_size(self, *args, **kwargs):
+        return dfx.ConstantStepSize().adapt_step_size(*args, **kwargs)
+
+
+# Adjoints that use `dt0` only through the controller (BacksolveAdjoint reads it).
+_DT0_FREE_ADJOINTS = (dfx.RecursiveCheckpointAdjoint, dfx.DirectAdjoint)
 
 
 class _DefaultController(eqx.Module):
@@ -488,6 +546,13 @@ def _canonical_call(
             controller = _DefaultController(rtol, atol)
         else:
             controller = dfx.ConstantStepSize()
+    if (
+        dt0 is not None
+        and type(controller) is dfx.ConstantStepSize
+        and event is None  # (an event's condition is given `dt0`)
+        and type(adjoint) in _DT0_FREE_ADJOINTS
+    ):
+        controller, dt0 = _ConstantStep(dt0), None
     return _Call(
         L=L_c, consts=tuple(consts), force=force, solver=solver, t0=t0, t1=t1,
         dt0=dt0, y0=y0, saveat=_saveat_spec(saveat), controller=controller,
@@ -505,106 +570,11 @@ def _solve(static, arrays):
     fields as plain containers of arrays, and whether it failed.
 
     diffrax checks save times and `dt0` inside its program, by a callback to Python
-    where they are arrays, and a program with a callback cannot be written to disk.
-    `simulate` makes the same checks on the host first (`check_save_times`, its
-    checks of `dt0`), so here those branches are dropped (`_map_jaxprs`)."""
-    c = _join(static, arrays)
-    if c.dt0 is None and not _saves_at_times(c.saveat):
-        return _solve_call(c)
-    solve = lambda arrays: _solve_call(_join(static, arrays))
-    closed, out = jax.make_jaxpr(solve, return_shape=True)(arrays)
-    outs = jex_core.jaxpr_as_fun(_map_jaxprs(closed))(*jax.tree.leaves(arrays))
-    return jax.tree.unflatten(jax.tree.structure(out), outs)
-
-
-def _saves_at_times(saveat) -> bool:
-    if isinstance(saveat, _SaveAt):
-        return saveat.ts is not None
-    is_sub = lambda x: isinstance(x, dfx.SubSaveAt)
-    return any(s.ts is not None for s in jax.tree.leaves(saveat.subs, is_leaf=is_sub))
-
-
-# What diffrax's checks of save times and `dt0` say (as prefixes): the checks that
-# `simulate` makes on the host before an eager solve.
-_HOST_CHECKED = (
-    "saveat.ts must be increasing or decreasing.",
-    "saveat.ts must lie between t0 and t1.",
-    "Must have (t1 - t0) * dt0 >= 0",
-)
-
-
-def _drop_checked(jaxpr):
-    """`jaxpr` without the callbacks of its `equinox.error_if` branches whose every
-    message is in `_HOST_CHECKED`: each such `cond` takes its branch without error
-    whatever its predicate; every other callback is kept (`jaxpr` itself where
-    nothing changes)."""
-    eqns = []
-    for eqn in jaxpr.eqns:
-        params = eqn.params
-        if eqn.primitive.name == "cond" and _checked_error(params["branches"]):
-            ok = params["branches"][0]
-            params = {**params, "branches": (ok, ok)}
-        else:
-            params = {k: _map_jaxprs(v) for k, v in params.items()}
-        changed = any(params[k] is not v for k, v in eqn.params.items())
-        eqns.append(eqn.replace(params=params) if changed else eqn)
-    if all(a is b for a, b in zip(eqns, jaxpr.eqns)):
-        return jaxpr
-    return jaxpr.replace(eqns=eqns)
-
-
-def _map_jaxprs(value):
-    """A parameter of an equation with the jaxprs in it passed to `_drop_checked`
-    (`value` itself where nothing changes)."""
-    if isinstance(value, jex_core.ClosedJaxpr):
-        jaxpr = _drop_checked(value.jaxpr)
-        return value if jaxpr is value.jaxpr else value.replace(jaxpr=jaxpr)
-    if isinstance(value, jex_core.Jaxpr):
-        return _drop_checked(value)
-    if isinstance(value, tuple) and any(
-        isinstance(v, jex_core.ClosedJaxpr | jex_core.Jaxpr) for v in value
-    ):
-        mapped = tuple(_map_jaxprs(v) for v in value)
-        return value if all(a is b for a, b in zip(mapped, value)) else mapped
-    return value
-
-
-def _checked_error(branches) -> bool:
-    """Whether a `cond`'s branches are `equinox.error_if`'s (no callback where its
-    predicate is false; callbacks raising `_HOST_CHECKED` messages where true)."""
-    if len(branches) != 2 or _callbacks(branches[0].jaxpr):
-        return False
-    messages = [_error_messages(f) for f in _callbacks(branches[1].jaxpr)]
-    return bool(messages) and all(
-        m is not None and all(x.startswith(_HOST_CHECKED) for x in m) for m in messages
-    )
-
-
-def _callbacks(jaxpr) -> list:
-    """The Python functions of the callbacks in `jaxpr` and the jaxprs nested in it."""
-    found = []
-    for eqn in jaxpr.eqns:
-        if "callback" in eqn.primitive.name:
-            found.append(eqn.params.get("callback"))
-        for sub in jex_core.jaxprs_in_params(eqn.params):
-            found += _callbacks(sub)
-    return found
-
-
-def _error_messages(callback):
-    """The messages an `equinox.error_if` callback raises, or None for any other."""
-    fn = getattr(callback, "callback_func", callback)
-    code = getattr(fn, "__code__", None)
-    if code is None or getattr(fn, "__module__", None) != "equinox._errors":
-        return None
-    cells = dict(zip(code.co_freevars, fn.__closure__ or ()))
-    try:
-        messages = cells["msgs"].cell_contents
-    except (KeyError, ValueError):
-        return None
-    if not all(isinstance(m, str) for m in messages):
-        return None
-    return tuple(messages)
+    where they are arrays; a program with a callback cannot be written to disk, so
+    a call with save times, or with a `dt0` that its controller cannot hold
+    (`_ConstantStep`), is compiled once per process (`simulate` checks them on the
+    host first, for an error that names the argument)."""
+    return _solve_call(_join(static, arrays))
 
 
 def _solve_call(c):
@@ -614,10 +584,10 @@ def _solve_call(c):
         t0, t1, dtype = c.t0, c.t1, c.y0[0].dtype
         controller = default_controller(controller.rtol, controller.atol, t0, t1, dtype)
     saveat = c.saveat.build() if isinstance(c.saveat, _SaveAt) else c.saveat
-    solve = getattr(dfx.diffeqsolve, "__wrapped__", dfx.diffeqsolve)
     sol = _diffeqsolve(
-        solve, BoundLagrangian(c.L, c.consts), c.force, c.solver, c.t0, c.t1, c.dt0,
-        c.y0, saveat, controller, c.max_steps, c.event, c.adjoint, c.progress_meter,
+        dfx.diffeqsolve, BoundLagrangian(c.L, c.consts), c.force, c.solver, c.t0,
+        c.t1, c.dt0, c.y0, saveat, controller, c.max_steps, c.event, c.adjoint,
+        c.progress_meter,
     )  # fmt: skip
     # Plain containers (a `Solution`'s tree does not survive pickling: the disk
     # cache finds an output tree it can write only for these).
@@ -637,10 +607,9 @@ _RESULT_TREE = jax.tree.structure(dfx.RESULTS.successful)
 
 @functools.cache
 def _solve_jit(elemental: bool):
-    """`_solve` compiled (with `ELEMENTAL` on a CPU)."""
-    return jax.jit(
-        _solve, static_argnums=0, compiler_options=ELEMENTAL if elemental else None
-    )
+    """`_solve` compiled (with `elemental_options` on a CPU)."""
+    options = elemental_options() if elemental else None
+    return jax.jit(_solve, static_argnums=0, compiler_options=options)
 
 
 def _solve_cached(call, elemental):
@@ -653,7 +622,7 @@ def _solve_cached(call, elemental):
     except TypeError:  # (an unhashable part: keyed on nothing)
         return None
     jitted = _solve_jit(elemental)
-    options = ELEMENTAL if elemental else None
+    options = elemental_options() if elemental else None
     try:
         fields, failed = cached_call(
             jitted, options, static, arrays, n_static=1, origin=(_solve_jit, elemental)

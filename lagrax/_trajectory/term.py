@@ -10,7 +10,7 @@ from jax.extend import core as jax_core
 from .._checks import check_callable, is_concrete
 from .._custom_types import GeneralizedForce, Lagrangian
 from .._eom.mechanics import _accelerations
-from .._jaxpr.canonical import CanonicalLagrangian
+from .._jaxpr.canonical import BoundLagrangian as BoundLagrangian
 from .._jaxpr.fusion import fusion_is_off
 
 
@@ -27,16 +27,6 @@ class _LagrangeVectorField(eqx.Module):
             return qdot, _bound_accelerations(self.L, q, qdot, t, self.force)
         qddot, _ = _accelerations(self.L, q, qdot, t, self.force)
         return qdot, qddot
-
-
-class BoundLagrangian(eqx.Module):
-    """A canonical Lagrangian with its constants: `L(q, qdot, t)`."""
-
-    L: CanonicalLagrangian
-    consts: tuple
-
-    def __call__(self, q, qdot, t):
-        return self.L(q, qdot, t, *self.consts)
 
 
 # Jaxprs of the accelerations per canonical Lagrangian (dropped with it), then per

@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from diffrax._term import WrapTerm  # not public; diffeqsolve wraps every term in it
 
 from .._checks import describe
+from .._compat import unwrap_time
 from .._eom.mechanics import _momenta
 from .term import LagrangianTerm
 
@@ -25,12 +25,10 @@ from .term import LagrangianTerm
 def _unwrap(
     term, solver_name="VariationalMidpoint"
 ) -> tuple[LagrangianTerm, jax.Array]:
-    # diffeqsolve wraps every term in a `WrapTerm` that flips time when t1 < t0; the
+    # diffeqsolve wraps every term in a wrapper that flips time when t1 < t0; the
     # discrete Lagrangian needs the real times, so undo it here.
-    direction = jnp.array(1)
-    while isinstance(term, WrapTerm):
-        direction = direction * term.direction
-        term = term.term
+    term, direction = unwrap_time(term)
+    direction = jnp.asarray(direction)
     if not isinstance(term, LagrangianTerm):
         raise TypeError(
             f"`terms` must be a `lagrax.LagrangianTerm(L)`: {solver_name} is "

@@ -16,10 +16,7 @@ Every module here has the same shape:
 - `SWEEP`, a `SweepSpec`, where `lagrax sweep NAME` needs more than the release
     point $q_0$ as the amplitude (its symbol, default range, method, coordinate).
 
-`parameters(module)` lists a system's parameters and their defaults. Older names are
-kept as aliases: `pendulum.pendulum_period`, `cycloid.cycloid_period` (with their
-parameters also positional), and the older `acceleration` calls with fewer arguments
-(e.g. `pendulum.acceleration(theta, r=..., g=...)`).
+`parameters(module)` lists a system's parameters and their defaults.
 """
 
 import inspect as _inspect
@@ -38,7 +35,6 @@ from . import (
     spherical_pendulum as spherical_pendulum,
 )
 from ._sweep_spec import SweepSpec as SweepSpec
-from .pendulum import pendulum_period as pendulum_period
 
 
 #: Every built-in system, by name.

@@ -36,8 +36,7 @@ def potential(x, *, k=1.0, a=1.0):
 def acceleration(q, qdot=None, t=0.0, *, m=1.0, k=1.0, a=1.0):
     r"""The hand-derived equation of motion $\ddot x = -(kx + ax^2)/m$.
 
-    Elementwise in `q`; `qdot` and `t` do not enter (so `acceleration(x, m=...)`, the
-    older call, still works)."""
+    Elementwise in `q`; `qdot` and `t` do not enter (they may be left out)."""
     return -(k * q + a * q**2) / m
 
 

@@ -79,11 +79,6 @@ def period(amplitude=None, *, m=1.0, R=1.0, g=1.0):
     return jnp.broadcast_to(T, jnp.shape(amplitude))
 
 
-def cycloid_period(amplitude=None, R=1.0, g=1.0):
-    """Alias of `period` (its older name, with `R` and `g` also positional)."""
-    return period(amplitude, R=R, g=g)
-
-
 def theta_from_u(u):
     r"""$\theta = 2\arccos(u) \in [0, 2\pi]$ for $u \in [-1, 1]$.
 

@@ -41,7 +41,7 @@ def acceleration(q, qdot=None, t=0.0, *, m=1.0, r=1.0, g=1.0):
     r"""The hand-derived equation of motion $\ddot\theta = -(g/r)\sin\theta$.
 
     Elementwise in `q` (shape `(1,)` as everywhere, or any shape); `qdot`, `t` and `m`
-    do not enter, so the older call `acceleration(theta, r=..., g=...)` still works.
+    do not enter (`acceleration(theta, r=..., g=...)` is the same call).
     """
     return -(g / r) * jnp.sin(q)
 
@@ -91,8 +91,3 @@ def period(amplitude, *, m=1.0, r=1.0, g=1.0):
     b = jnp.cos(jnp.where(inside, theta0, 0.0) / 2)
     T = small_amplitude_period(r=r, g=g) / _agm(jnp.ones_like(b), b)
     return jnp.where(inside, T, jnp.inf)
-
-
-def pendulum_period(amplitude, r=1.0, g=1.0):
-    """Alias of `period` (its older name, with `r` and `g` also positional)."""
-    return period(amplitude, r=r, g=g)

@@ -39,11 +39,8 @@ def acceleration(q, qdot=None, t=0.0, *, potential=harmonic, m=1.0, force_x=None
     r"""Newton's $\ddot x = F_x / m$, elementwise in `q`.
 
     $F_x = -V'(x)$ is `force_x(x)` when given by hand, else the derivative of
-    `potential`. The older call `acceleration(x, force_x, m=m)` (a callable in the
-    place of `qdot`) is kept as an alias of `acceleration(x, force_x=force_x, m=m)`.
+    `potential`; `qdot` and `t` do not enter.
     """
-    if callable(qdot):
-        force_x = qdot
     if force_x is None:
         return -jnp.vectorize(jax.grad(potential))(q) / m
     return jnp.asarray(force_x(q)) / m
