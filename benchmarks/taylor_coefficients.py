@@ -40,7 +40,7 @@ jax.config.update("jax_enable_x64", True)
 
 import lagrax  # noqa: E402
 from lagrax._jaxpr.canonical import canonical_lagrangian  # noqa: E402
-from lagrax._jaxpr.fusion import ELEMENTAL  # noqa: E402
+from lagrax._jaxpr.fusion import elemental_options  # noqa: E402
 from lagrax._taylor import compact  # noqa: E402
 from lagrax._taylor.system import System  # noqa: E402
 from lagrax._trajectory.term import _LagrangeVectorField  # noqa: E402
@@ -99,7 +99,7 @@ def loop(coefficients, steps):
 
         return jax.lax.fori_loop(0, steps, body, ys)
 
-    return jax.jit(run, compiler_options=ELEMENTAL)
+    return jax.jit(run, compiler_options=elemental_options())
 
 
 def measure(jitted, args, repeats):
