@@ -650,15 +650,7 @@ def _compact_applies() -> bool:
 def _known(jitted, options, origin, args) -> bool:
     """Whether the specialized program is compiled in this process or on disk
     (found by its pre-key, without tracing)."""
-    static, dynamic = args[:2], args[2:]
-    leaves, treedef = jax.tree.flatten(dynamic)
-    signature = tuple(executables._signature(x) for x in leaves)
-    if (jitted, static, treedef, signature) in executables._PROGRAMS:
-        return True
-    if executables.cache_dir() is None:
-        return False
-    prekey = executables._prekey(jitted, origin, options, static, leaves, treedef)
-    return prekey is not None and executables._read_link(prekey) is not None
+    return executables.available(jitted, options, *args, n_static=2, origin=origin)
 
 
 def _tape(L_c, consts, force, n, dtype):
