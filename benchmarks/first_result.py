@@ -439,7 +439,128 @@ def work_heyoka(args):
     return row
 
 
+def _chain(n, hy=False):
+    """A chain of n unit pendulums from particle positions (as trajectories.py);
+    heyoka.py's `lagrangian()` of the same T - V with `hy`."""
+    if hy:
+        import heyoka as h
+
+        qs = list(h.make_vars(*[f"q{i}" for i in range(n)]))
+        ws = list(h.make_vars(*[f"w{i}" for i in range(n)]))
+        y = vx = vy = 0.0
+        T = V = 0.0
+        for q, w in zip(qs, ws):
+            y, vx, vy = y - h.cos(q), vx + h.cos(q) * w, vy + h.sin(q) * w
+            T, V = T + 0.5 * (vx**2 + vy**2), V + 9.81 * y
+        return h.lagrangian(T - V, qs, ws)
+    import jax.numpy as jnp
+
+    import lagrax
+
+    def positions(q, t):
+        return jnp.stack([jnp.cumsum(jnp.sin(q)), -jnp.cumsum(jnp.cos(q))], axis=1)
+
+    return lagrax.particle_lagrangian(
+        jnp.ones(n), positions, lambda r, t: 9.81 * jnp.sum(r[:, 1])
+    )
+
+
+def _chain_releases(n, count=256):
+    import numpy as np
+
+    q0 = np.random.default_rng(0).uniform(-0.5, 0.5, (count, n))
+    return q0, np.zeros_like(q0)
+
+
+def _chain_error(ys, path):
+    import numpy as np
+
+    if not path:
+        return None
+    return float(np.max(np.abs(np.asarray(ys) - np.load(path))))
+
+
+def work_chain(args):
+    """`simulate_batch` of a chain (`--n` links, 256 releases, t = 10, Taylor-16
+    at rtol = atol = `--tol`), `LAGRAX_COMPACT` choosing the tier: import, the
+    first call, then the best of three."""
+    jax, lagrax, row, _ = _jax_import()
+    import_s = row["import_s"]
+    L = _chain(args.links)
+    q0, v0 = _chain_releases(args.links)
+    run = lambda: lagrax.simulate_batch(
+        L, q0, v0, 0.0, 10.0, solver=lagrax.Taylor(order=16), rtol=args.tol,
+        atol=args.tol, max_steps=1 << 16,
+    )  # fmt: skip
+    t = time.perf_counter()
+    sol = jax.block_until_ready(run())
+    first = time.perf_counter() - t
+    best = float("inf")
+    for _ in range(3):
+        t = time.perf_counter()
+        sol = jax.block_until_ready(run())
+        best = min(best, time.perf_counter() - t)
+    import numpy as np
+
+    ys = np.concatenate([np.asarray(sol.ys[0][:, -1]), np.asarray(sol.ys[1][:, -1])], 1)
+    return dict(
+        links=args.links, tol=args.tol, import_s=import_s, first_s=first,
+        steady_s=best, steps=float(np.mean(np.asarray(sol.stats["num_steps"]))),
+        max_error=_chain_error(ys, args.reference),
+    )  # fmt: skip
+
+
+def work_chain_heyoka(args):
+    """heyoka.py's `taylor_adaptive_batch` (SIMD width, `--tol`, compact mode with
+    `--compact`) on the same releases, its code caches off: import, build, the
+    first run and the best of three."""
+    t0 = time.perf_counter()
+    import heyoka as hy
+    import numpy as np
+
+    import_s = time.perf_counter() - t0
+    hy.llvm_state.set_diskcache_enabled(False)
+    n = args.links
+    q0, v0 = _chain_releases(n)
+    y0 = np.concatenate([q0, v0], 1)
+    B = hy.recommended_simd_size()
+    t = time.perf_counter()
+    tb = hy.taylor_adaptive_batch(
+        _chain(n, hy=True), np.zeros((2 * n, B)), tol=args.tol,
+        compact_mode=args.compact,
+    )  # fmt: skip
+    build = time.perf_counter() - t
+
+    def run():
+        out = np.empty_like(y0)
+        for i in range(0, len(y0), B):
+            idx = np.resize(np.arange(i, min(i + B, len(y0))), B)
+            tb.set_time(0.0)
+            tb.state[:] = y0[idx].T
+            tb.propagate_until(10.0)
+            out[i : i + B] = tb.state.T[: min(B, len(y0) - i)]
+        return out
+
+    t = time.perf_counter()
+    ys = run()
+    first = time.perf_counter() - t
+    best = float("inf")
+    for _ in range(3):
+        t = time.perf_counter()
+        ys = run()
+        best = min(best, time.perf_counter() - t)
+    if args.save:
+        np.save(args.save, ys)
+    return dict(
+        links=n, tol=args.tol, compact=args.compact, import_s=import_s,
+        build_s=build, first_run_s=first, steady_s=best, order=tb.order,
+        max_error=_chain_error(ys, args.reference),
+    )  # fmt: skip
+
+
 WORKERS = dict(
+    chain=work_chain,
+    chain_heyoka=work_chain_heyoka,
     sweep=work_sweep,
     tape=work_tape,
     tape_parts=work_tape_parts,
@@ -523,7 +644,7 @@ def main():
     p.add_argument("--system", default="pendulum")
     p.add_argument("--solver", default="tsit5", help="eager: tsit5, dopri8, taylor")
     p.add_argument("--ts", type=int, default=0, help="eager: save at n times")
-    p.add_argument("--only", choices=("all", "eager", "tape"), default="all")
+    p.add_argument("--only", choices=("all", "eager", "tape", "chains"), default="all")
     p.add_argument(
         "--elemental", action="store_true", help="simulate: XLA's elemental emitters"
     )
@@ -531,6 +652,15 @@ def main():
         "--batch-solver", default="taylor", help="batch: taylor, tsit5, dopri8"
     )
     p.add_argument("--cache", help="tape_parts: the cache directory to read")
+    p.add_argument("--links", type=int, default=4, help="chain: its links")
+    p.add_argument("--tol", type=float, default=1e-12, help="chain: the tolerance")
+    p.add_argument("--compact", action="store_true", help="chain_heyoka: compact")
+    p.add_argument("--reference", default="", help="chain: the reference states")
+    p.add_argument("--save", default="", help="chain_heyoka: save the end states")
+    p.add_argument(
+        "--chains", type=int, nargs="+", default=[4, 6, 8],
+        help="--only chains: the links of each chain",
+    )  # fmt: skip
     args = p.parse_args()
     if args.worker:
         print(json.dumps(WORKERS[args.worker](args)))
@@ -541,6 +671,10 @@ def main():
         return
     if args.only == "tape":
         _write_results(args, tape_rows(args.core), "first_result_tape.json")
+        return
+    if args.only == "chains":
+        out = chain_rows(args.core, args.chains)
+        _write_results(args, out, "first_result_chains.json")
         return
     sizes = [1000, 4096] if args.quick else [1000, 4096, 10_000, 100_000, 1_000_000]
     c = args.core
@@ -657,6 +791,38 @@ def tape_rows(core):
     print("steady (tape, specialized):", json.dumps(out["warm"][0]))
     print("parts", json.dumps(out["parts"]))
     return out
+
+
+def chain_rows(core, links):
+    """Chains of `links` links, 256 releases, t = 10, error against heyoka.py at
+    tol 1e-15: heyoka.py in compact and default mode (tol 1e-11), lagrax's
+    compact tier (its disk cache empty, then filled: a machine that has run
+    lagrax) and its specialized program (Taylor-16, rtol = atol = 1e-12); each a
+    fresh process pinned to `core`."""
+    rows = []
+    for n in links:
+        with tempfile.TemporaryDirectory() as folder:
+            ref = os.path.join(folder, "ref.npy")
+            spawn(core, "chain_heyoka", links=n, tol=1e-15, compact=True, save=ref)
+            common = dict(links=n, reference=ref)
+            for compact in (True, False):
+                if not compact and n > 6:
+                    continue  # (its build runs for minutes)
+                row = spawn(core, "chain_heyoka", tol=1e-11, compact=compact, **common)
+                rows.append(dict(name=f"heyoka.py batch, compact={compact}", **row))
+                print(json.dumps(rows[-1]), flush=True)
+            cache = os.path.join(folder, "cache")
+            env = dict(LAGRAX_COMPACT="2", LAGRAX_CACHE_DIR=cache)
+            for label in ("compact tier, empty cache", "compact tier, filled cache"):
+                row = spawn(core, "chain", env=env, **common)
+                rows.append(dict(name=f"lagrax simulate_batch, {label}", **row))
+                print(json.dumps(rows[-1]), flush=True)
+            if n <= 4:
+                env = dict(LAGRAX_COMPACT="0")
+                row = spawn(core, "chain", env=env, **common)
+                rows.append(dict(name="lagrax simulate_batch, specialized", **row))
+                print(json.dumps(rows[-1]), flush=True)
+    return dict(rows=rows)
 
 
 def _write_results(args, out, name):

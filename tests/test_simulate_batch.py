@@ -207,3 +207,70 @@ def test_long_integration_keeps_its_time_exact():
     assert np.asarray(sol.stats["num_steps"]).min() > 2000
     np.testing.assert_allclose(sol.ys[0][:, -1], q, rtol=0, atol=2e-14)
     np.testing.assert_allclose(sol.ys[1][:, -1], v, rtol=0, atol=2e-14)
+
+
+def _double_pendulum(g):
+    def L(q, qdot, t):
+        t1, t2, w1, w2 = q[0], q[1], qdot[0], qdot[1]
+        T = w1**2 + 0.5 * w2**2 + w1 * w2 * jnp.cos(t1 - t2)
+        return T + 2 * g * jnp.cos(t1) + g * jnp.cos(t2)
+
+    return L
+
+
+def test_compact_tier_equals_the_specialized_program(monkeypatch):
+    """The compact tier (one program per size class, the equations as data) gives
+    the specialized program's states to rounding; a rebuilt L with another
+    parameter value runs through the same executable."""
+    from lagrax._cache import executables
+
+    q0 = np.random.default_rng(1).uniform(-1, 1, (5, 2))
+    run = lambda g: lagrax.simulate_batch(
+        _double_pendulum(g), q0, np.zeros_like(q0), 0.0, 2.0, solver=TAYLOR,
+        rtol=1e-12, atol=1e-12, width=4,
+    )  # fmt: skip
+    states = lambda sol: np.concatenate([sol.ys[0][:, -1], sol.ys[1][:, -1]], 1)
+    monkeypatch.setenv("LAGRAX_COMPACT", "0")
+    ref = {g: states(run(g)) for g in (9.81, 3.0)}
+    monkeypatch.setenv("LAGRAX_COMPACT", "2")
+    np.testing.assert_allclose(states(run(9.81)), ref[9.81], rtol=0, atol=1e-12)
+    loaded = len(executables._LOADED)
+    np.testing.assert_allclose(states(run(3.0)), ref[3.0], rtol=0, atol=1e-12)
+    assert len(executables._LOADED) == loaded
+
+
+def test_tiers_compact_first_then_specialized(monkeypatch):
+    """A Lagrangian whose specialized program compiles for long runs on the compact
+    program first, and on the specialized one once the time spent on the compact
+    one reaches that compile (saying so once); a short compile goes straight to
+    the specialized program."""
+    import collections
+
+    from lagrax._trajectory import batch
+
+    calls = []
+    monkeypatch.setattr(
+        batch, "cached_call", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    real = lagrax._cache.executables.cached_call
+    monkeypatch.setattr(batch, "_SPENT", collections.Counter())
+    monkeypatch.setattr(batch, "_NOTIFIED", set())
+    monkeypatch.setenv("LAGRAX_COMPACT", "1")
+    q0 = np.array([[0.5, -0.2], [0.1, 0.3]])
+    run = lambda: lagrax.simulate_batch(
+        oscillator, q0, np.zeros_like(q0), 0.0, 1.0, solver=TAYLOR, rtol=1e-10,
+        atol=1e-10,
+    )  # fmt: skip
+    monkeypatch.setattr(batch, "_compile_estimate", lambda nodes, order: 1e3)
+    first = run()
+    assert not calls and sum(batch._SPENT.values()) > 0
+    (cfg,) = batch._SPENT
+    batch._SPENT[cfg] = 1e3
+    with pytest.warns(UserWarning, match="specialized"):
+        second = run()
+    assert calls == [1]
+    np.testing.assert_allclose(second.ys[0], first.ys[0], rtol=0, atol=1e-12)
+    monkeypatch.setattr(batch, "_compile_estimate", lambda nodes, order: 1.0)
+    batch._SPENT.clear()
+    run()
+    assert calls == [1, 1]

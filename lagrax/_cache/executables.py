@@ -231,6 +231,24 @@ def cached_call(jitted, options, *args, n_static=0, origin=None, out_tree=None):
     return _run(_PROGRAMS, program, dynamic, found.compile)
 
 
+def available(jitted, options, *args, n_static=0, origin=None) -> bool:
+    """Whether `cached_call` (same arguments) would run the program without
+    compiling it: compiled in this process, or on disk under its pre-key (found
+    without tracing; an entry found only by lowering counts as not available)."""
+    static, dynamic = args[:n_static], args[n_static:]
+    leaves, treedef = jax.tree.flatten(dynamic)
+    program = (jitted, static, treedef, tuple(_signature(x) for x in leaves))
+    if program in _PROGRAMS:
+        return True
+    if cache_dir() is None or not _applies():
+        return False
+    prekey = _prekey(jitted, origin, options, static, leaves, treedef)
+    if prekey is None:
+        return False
+    linked = _read_link(prekey)
+    return linked is not None and os.path.exists(_path(linked[0]))
+
+
 class _Found:
     """The executable of one program of `cached_call`: by its pre-key (no tracing),
     else by its lowered text; or compiled."""

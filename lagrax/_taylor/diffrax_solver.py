@@ -36,6 +36,7 @@ from .._jaxpr.fusion import one_fusion
 from .._jaxpr.switches import switches
 from .._stepper.taylor import TRUNCATION
 from .._trajectory.term import LagrangianTerm
+from . import compact
 
 
 class TaylorInterpolation(dfx.AbstractLocalInterpolation):
@@ -71,6 +72,27 @@ def _ode_term(terms):
             f"{type(inner).__name__}."
         )
     return terms
+
+
+# Programs of at least this many nodes times orders take the compact program: it
+# compiles in about a second (the unrolled one's compile grows faster than the
+# program, minutes for a double pendulum under a default `jit`), and runs slower.
+_COMPACT_FROM = 400
+
+
+def _compact_tape(system, K, dtype):
+    """`(tape, traced constants)` of the step's program (`lagrax._taylor.compact`),
+    or None where the unrolled program is taken: a small program, one not
+    evaluated entry by entry, or a primitive without a compact opcode."""
+    if not system.scalar or len(system.prog.nodes) * K < _COMPACT_FROM:
+        return None
+    prog = system.prog
+    try:
+        return compact.build(
+            prog, prog.inputs, prog.params, prog.outs, dtype, traced=True
+        )
+    except NotImplementedError:
+        return None
 
 
 def _error(cs, h, K):
@@ -161,12 +183,18 @@ class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
 
         system = System(f, t0, leaves, [unit, *arg_leaves])
         lane = lambda a: jnp.asarray(a)[None]
-        coefs = system.coefficients(
-            K,
-            lane(t0),
-            [lane(y) for y in leaves],
-            [lane(p) for p in (unit, *arg_leaves)],
-        )
+        params = [lane(p) for p in (unit, *arg_leaves)]
+        found = _compact_tape(system, K, t0.dtype)
+        if found is None:
+            coefs = system.coefficients(K, lane(t0), [lane(y) for y in leaves], params)
+        else:
+            # (The Lagrangian's constants arrive traced, through diffrax's loop:
+            # the tape takes them as parameters.)
+            tape, constants = found
+            entries = system.split([lane(y) for y in leaves])
+            params += [lane(c).astype(t0.dtype) for c in constants]
+            lanes = compact.lane_function(tape, K, trig=True)
+            coefs = lanes(lane(t0), entries, params)
         h = jnp.asarray(t1 - t0, t0.dtype)
         ends = [horner(c, h) for c in coefs]
         sg = jax.lax.stop_gradient
@@ -177,12 +205,12 @@ class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
         if _switches(terms, t0, y0, args):
             # The vector field where the step ends (the program at order 1): the
             # defect (`_defect`) sees a branch that switched inside the step.
-            f1 = system.coefficients(
-                1,
-                lane(t0 + h),
-                [sg(y) for y in system.join(ends)],
-                [lane(p) for p in (unit, *arg_leaves)],
-            )
+            if found is None:
+                ys1 = [sg(y) for y in system.join(ends)]
+                f1 = system.coefficients(1, lane(t0 + h), ys1, params)
+            else:
+                lanes1 = compact.lane_function(tape, 1, trig=True)
+                f1 = lanes1(lane(t0 + h), [sg(y) for y in ends], params)
             for i, c in enumerate(coefs):
                 defect = sg(_defect(c, f1[i][1], h, K))
                 values["err", i] = jnp.maximum(values["err", i], defect)

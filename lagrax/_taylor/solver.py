@@ -84,12 +84,13 @@ class Taylor(AbstractTaylorSolver):
     `BacksolveAdjoint` integrates an adjoint vector field whose jaxpr (transposed
     products) is not guaranteed to have recurrences. For $n \ge 3$ coordinates the
     mass-matrix solve of `lagrax.vector_field` is expanded with one factorization of
-    $M_0$ per step. A large vector field at a high order makes a large program:
-    `simulate` called outside `jit` and `simulate_batch` compile it with XLA's
-    elemental CPU emitters (the compile option `{"xla_cpu_use_fusion_emitters":
-    False}`), with which it stays one vectorized loop; inside a `jax.jit` of your
-    own, pass that option to your `jit` (XLA's default CPU emitters recompute parts
-    of such a program: hundreds of times slower for the double pendulum at order 12).
+    $M_0$ per step. A step program of a few hundred nodes times orders or more (the
+    double pendulum at order 20) is computed by a compact program (the
+    recurrences as data, loops over dependency levels and orders, as heyoka.py's
+    compact mode), which XLA compiles in seconds under any `jit`, yours
+    included, with no compiler option; a caller's `jax.vmap` becomes its lanes.
+    Smaller ones are written out order by order (fastest); `simulate` called
+    outside `jit` compiles those with XLA's elemental CPU emitters.
 
     In the period kernel, the acceleration's jaxpr must consist of primitives with a
     recurrence. For one that has none, `Taylor()` raises

@@ -19,7 +19,12 @@ slowest one's step count and pays its general bookkeeping per lane-step (stage l
 controller, saving), several times the Taylor step of a small system.
 """
 
+import collections
+import dataclasses
 import functools
+import os
+import time
+import warnings
 from typing import ClassVar
 
 import diffrax as dfx
@@ -28,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._cache import executables
 from .._cache.executables import cached_call
 from .._checks import (
     as_real_array,
@@ -44,6 +50,7 @@ from .._jaxpr.fusion import elemental_options
 from .._jaxpr.switches import switches
 from .._stepper.base import LaneField
 from .._stepper.taylor import log2_approx, TaylorStepper, TRUNCATION
+from .._taylor import compact
 from .._taylor.solver import Taylor
 from .._taylor.system import System
 from .simulate import elemental, simulate
@@ -136,21 +143,56 @@ class SystemTaylorStepper(TaylorStepper):
         )
 
 
+class CompactTaylorStepper(TaylorStepper):
+    r"""`SystemTaylorStepper`'s step with the coefficients from a compact tape
+    (`lagrax._taylor.compact`): the compiled step is the same for every system of
+    the tape's size class, the tape an argument of the program."""
+
+    tape: compact.CompactTape
+    branch_free: ClassVar[bool] = True
+
+    def exp2(self, x):
+        return _exp2(x)
+
+    def coefficients(self, field, s, x, v):
+        K, n = self.order, len(x)
+        cols = compact.compact_coefficients(
+            self.tape, K, s, [*x, *v], [field.params], trig=True
+        )
+        xs = [tuple(c[k] for c in cols[:n]) for k in range(K + 1)]
+        vs = [tuple(c[k] for c in cols[n:]) for k in range(K + 1)]
+        return xs, vs, [tuple((k + 1) * c for c in vs[k + 1]) for k in range(K)]
+
+    def acceleration(self, s, x, v, sigma):
+        """The acceleration at `(s, x, v)` on every lane (the tape at order 1)."""
+        n = len(x)
+        cols = compact.compact_coefficients(
+            self.tape, 1, s, [*x, *v], [sigma], trig=True
+        )
+        return tuple(c[1] for c in cols[n:])
+
+
 class _Config(eqx.Module):
     """What the compiled loop depends on besides array values (hashable). `L`: the
     canonical Lagrangian (equal for every `L` with the same body: a rebuilt `L` with
     new parameter values reuses the program, its values the loop's `consts`)."""
 
-    L: CanonicalLagrangian
+    L: CanonicalLagrangian | None
     force: GeneralizedForce | None
     order: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     n_save: int = eqx.field(static=True)
     save_t1: bool = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
+    # The compact tier: the program's equations are its last argument (a tape),
+    # not `L` and `force` (None).
+    compact: bool = eqx.field(static=True, default=False)
+    # Whether L or the force switches branch with the state or time (`switches`):
+    # then every step is checked where it ends.
+    checked: bool = eqx.field(static=True, default=False)
 
 
-def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
+def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, source):
     """All releases through `cfg.width` refilling lanes of one device.
 
     Returns the saved states `(B, T, 2n)` (`T` = the save times, then the end if
@@ -166,25 +208,15 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
     dtype = q0.dtype
     W = min(cfg.width, B)
     M = cfg.n_save
-    field = _LagrangeVectorField(
-        lambda q, qdot, t: cfg.L(q, qdot, t, *consts), cfg.force
-    )
-
-    def f(tau, ys, params):
-        q, w = ys
-        (sigma,) = params
-        return [w, field(sigma * tau, (q, sigma * w), None)[1]]
-
-    zero = jnp.zeros((), dtype)
-    system = System(f, zero, [q0[0], v0[0]], [zero + 1])
-    stepper = SystemTaylorStepper(
-        order=cfg.order, max_step=np.inf, truncation=TRUNCATION, system=system
-    )
-    # Whether a step must be checked for a switch of L's branches inside it (see
+    rule = dict(order=cfg.order, max_step=np.inf, truncation=TRUNCATION)
+    if cfg.compact:  # (`source`: the tape of the system's equations)
+        stepper = CompactTaylorStepper(**rule, tape=source)
+    else:  # (`source`: the values of the canonical Lagrangian's constants)
+        system = _system(cfg.L, source, cfg.force, q0[0], v0[0])
+        stepper = SystemTaylorStepper(**rule, system=system)
+    # Whether each step is checked for a switch of L's branches inside it (see
     # `TaylorStepper.defect`): only where L or the force has one.
-    state = (q0[0], v0[0], t0[0])
-    checked = switches(lambda q, qdot, t, *c: cfg.L(q, qdot, t, *c), state, consts)
-    checked = checked or (cfg.force is not None and switches(cfg.force, state))
+    checked = cfg.checked
     sign = jnp.where(t1 >= t0, 1.0, -1.0).astype(dtype)
     # One row per release: its state in its own time (q, sigma qdot), its start
     # time sigma t0 as a sum of two floats (S0 + S0_LO, the low part 0 at release),
@@ -326,6 +358,29 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, consts):
     return ys, ends[:, m], code.astype(jnp.int32), counts[:, 0], counts[:, 1]
 
 
+def _system(L_c, consts, force, q, v):
+    r"""The program of $q' = w$, $w' = \\ddot q(\\sigma \\tau, q, \\sigma w)$ (a lane in
+    its own time, `sigma` its direction)."""
+    field = _LagrangeVectorField(lambda q, qdot, t: L_c(q, qdot, t, *consts), force)
+
+    def f(tau, ys, params):
+        q, w = ys
+        (sigma,) = params
+        return [w, field(sigma * tau, (q, sigma * w), None)[1]]
+
+    zero = jnp.zeros((), q.dtype)
+    return System(f, zero, [q, v], [zero + 1])
+
+
+def _switches(L_c, consts, force, n, dtype) -> bool:
+    """Whether L or the force switches branch with the state or time (traced once,
+    nothing evaluated)."""
+    q = jax.ShapeDtypeStruct((n,), dtype)
+    state = (q, q, jax.ShapeDtypeStruct((), dtype))
+    found = switches(lambda q, qdot, t, *c: L_c(q, qdot, t, *c), state, consts)
+    return found or (force is not None and switches(force, state))
+
+
 def _none(x):
     return x is None
 
@@ -350,6 +405,16 @@ def _compiled(cpu, devices):
         compiler_options=elemental_options() if cpu else None,
     )
     return jitted
+
+
+@functools.cache
+def _compact_program(cfg, shape, cpu, devices):
+    """`_compiled` for the compact tier, its static arguments bound: the program
+    takes the tape as its last argument and depends on its size class only."""
+    return jax.jit(
+        lambda *args: _assemble(*shape, *_looped(devices)(cfg, *args)),
+        compiler_options=elemental_options() if cpu else None,
+    )
 
 
 def _looped(devices):
@@ -517,6 +582,7 @@ def simulate_batch(
         n_save=0 if ts is None else int(ts.shape[0]),
         save_t1=save_t1,
         max_steps=max_steps,
+        checked=_switches(L_c, consts, force, q0.shape[1], dtype),
     )
     ts_arr = np.zeros((0,), dtype) if ts is None else ts.astype(dtype)
     cpu = jax.default_backend() == "cpu"
@@ -529,10 +595,8 @@ def simulate_batch(
     shape = (B, q0.shape[1], ts is not None, save_t1)
     if is_concrete(args, ts_arr, consts):  # (a later process loads it from disk,
         options = elemental_options() if cpu else None  # (pre-key: no tracing)
-        out = cached_call(
-            jitted, options, cfg, shape, *args, ts_arr, consts, n_static=2,
-            origin=(_compiled, cpu, devices[:D]),
-        )  # fmt: skip
+        call = (jitted, options, cfg, shape, *args, ts_arr, consts)
+        out = _tiered(call, (_compiled, cpu, devices[:D]), q0.shape[1], dtype)
     else:
         try:
             out = jitted(cfg, shape, *args, ts_arr, consts)
@@ -573,6 +637,147 @@ def simulate_batch(
 # (The loop's program returns `result`'s array: an enumeration item's tree does
 # not survive pickling, where the disk cache keeps the output structure.)
 _RESULT_TREE = jax.tree.structure(dfx.RESULTS.successful)
+_OUT_TREE = jax.tree.structure((0,) * 7)  # (`_assemble`'s outputs)
+
+# --- tiers: the compact program first, the specialized one once it pays -----------
+#
+# The specialized program (the Lagrangian's recurrences written out) runs fastest,
+# but XLA compiles it for seconds to minutes per Lagrangian; the compact program
+# (`lagrax._taylor.compact`) is compiled once per size class and kept on disk, so a
+# new Lagrangian costs the building of its tape, and runs several times slower. A
+# call takes the specialized program where it is compiled or on disk, or where its
+# compile is short (`_COMPACT_FROM`); otherwise the compact one, until the time
+# spent on it with this Lagrangian and configuration reaches the specialized
+# compile's (a ski rental: never more than twice the better of the two choices
+# made with hindsight), as a JIT's first tier.
+
+# Estimated specialized compiles shorter than this (s) are not worth a tier.
+_COMPACT_FROM = 8.0
+# Seconds spent on the compact program per configuration.
+_SPENT: collections.Counter = collections.Counter()
+_TAPES: collections.OrderedDict = collections.OrderedDict()
+_MAX_TAPES = 64
+_NOTIFIED: set = set()
+
+
+def _tiered(call, origin, n, dtype):
+    """The loop's outputs through the specialized program or the compact one
+    (above). `call`: `(jitted, options, cfg, shape, *args)` as `cached_call` takes
+    them; `origin` its factory and arguments."""
+    jitted, options, cfg, shape, *args = call
+    specialized = lambda: cached_call(
+        jitted, options, cfg, shape, *args, n_static=2, origin=origin
+    )
+    consts = args[-1]
+    if not _compact_applies():
+        return specialized()
+    only = _compact_mode() == "2"
+    if not only and _known(jitted, options, origin, (cfg, shape, *args)):
+        return specialized()
+    found = _tape(cfg.L, consts, cfg.force, n, dtype)
+    if found is None:
+        return specialized()
+    tape, nodes = found
+    estimate = _compile_estimate(nodes, cfg.order)
+    if not only and (estimate < _COMPACT_FROM or _SPENT[cfg] >= estimate):
+        _notify(cfg, estimate)
+        return specialized()
+    compact_cfg = dataclasses.replace(cfg, L=None, force=None, compact=True)
+    cpu, devices = origin[1:]
+    static = (compact_cfg, shape, cpu, len(devices), tape.size)
+    start = time.perf_counter()
+    out = executables.call(
+        _compact_program(compact_cfg, shape, cpu, devices),
+        static,
+        _OUT_TREE,
+        *args[:-1],
+        tape,
+    )
+    jax.block_until_ready(out)
+    _SPENT[cfg] += time.perf_counter() - start
+    return out
+
+
+def _compact_mode() -> str:
+    """`LAGRAX_COMPACT`: "1" or unset (the tiers above), "0" (the specialized
+    program only), "2" (the compact one wherever it applies: benchmarks, tests)."""
+    flag = os.environ.get("LAGRAX_COMPACT", "1").strip() or "1"
+    if flag not in ("0", "1", "2"):
+        raise ValueError(
+            f"The environment variable LAGRAX_COMPACT must be 0, 1 or 2; got {flag!r}."
+        )
+    return flag
+
+
+def _compact_applies() -> bool:
+    """Whether the compact tier may be taken: on a CPU (executables are kept on
+    disk for one process's CPU devices), unless `LAGRAX_COMPACT=0`."""
+    return _compact_mode() != "0" and executables._applies()
+
+
+def _known(jitted, options, origin, args) -> bool:
+    """Whether the specialized program is compiled in this process or on disk
+    (found by its pre-key, without tracing)."""
+    return executables.available(jitted, options, *args, n_static=2, origin=origin)
+
+
+def _tape(L_c, consts, force, n, dtype):
+    """`(tape, nodes)`: the compact tape of the system's equations (the constants'
+    values as its own) and the number of nodes of its program, or None where it
+    has none (a primitive without a compact opcode, a program not evaluated entry
+    by entry)."""
+    try:
+        values = tuple((np.shape(c), np.asarray(c).tobytes()) for c in consts)
+        key = (L_c, force, n, np.dtype(dtype).name, values)
+        hash(key)
+    except TypeError:
+        key = None
+    if key is not None and key in _TAPES:
+        _TAPES.move_to_end(key)
+        return _TAPES[key]
+    try:
+        zeros = jnp.zeros((n,), dtype)
+        system = _system(L_c, [jnp.asarray(c) for c in consts], force, zeros, zeros)
+        if not system.scalar:
+            raise NotImplementedError("not scalarized")
+        prog = system.prog
+        tape = compact.build(
+            prog, prog.inputs, prog.params, prog.outs, dtype, size=_SIZE_CLASS
+        )
+        found = tape, len(prog.nodes)
+    except (NotImplementedError, TypeError, ValueError):
+        found = None
+    if key is not None:
+        _TAPES[key] = found
+        if len(_TAPES) > _MAX_TAPES:
+            _TAPES.popitem(last=False)
+    return found
+
+
+# Every compact program holds these families at order 0 (so that most Lagrangians
+# of a size share it) and these smallest sizes.
+_SIZE_CLASS = dict(families=(compact.AFFINE, compact.RARE, compact.LOGIC,
+                             compact.SINCOS), S=256, NB=32, L0=16)  # fmt: skip
+
+
+def _compile_estimate(nodes, order) -> float:
+    """Seconds the specialized program takes to trace and compile, from the nodes of
+    the system's program and the order (fitted to the double pendulum and chains
+    of 2 and 4 pendulums at order 16, one core)."""
+    return 4.5 * (nodes / 41.0) * (order / 16.0) ** 1.5
+
+
+def _notify(cfg, estimate):
+    """One line, once per configuration, where the specialized compile is long."""
+    if cfg in _NOTIFIED or estimate < 10.0:
+        return
+    _NOTIFIED.add(cfg)
+    warnings.warn(
+        "lagrax.simulate_batch: compiling the Taylor program specialized to this "
+        f"Lagrangian (order {cfg.order}), about {estimate:.0f} s once; later calls, "
+        "also in later processes, reuse it.",
+        stacklevel=4,
+    )
 
 
 def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, rejected, ts_arr):
