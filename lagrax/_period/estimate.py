@@ -159,6 +159,18 @@ def screen(T, t_a, t_b, terms_a: BoundTerms, terms_b: BoundTerms, band, rtols):
     return jnp.where(usable, bound, jnp.inf)
 
 
+def screen_quarter(T, t_a, terms: BoundTerms):
+    r"""The first-order bound of "quarter"'s period, $T = 4 t_a$: `screen` for its
+    one leg, from rest to the point of maximum speed (the well's mirror symmetry,
+    which the method checks to the tolerance, is assumed)."""
+    eps = jnp.finfo(T.dtype).eps
+    T, t_a = jax.lax.stop_gradient((T, t_a))
+    err = 4 * (terms.ph + terms.J) + 32 * eps * t_a
+    bound = _SCREEN_SAFETY * err / jnp.abs(T) + 64 * eps
+    usable = (terms.G <= _SCREEN_LEVERAGE) & jnp.isfinite(bound)
+    return jnp.where(usable, bound, jnp.inf)
+
+
 def needs_second_solve(status, bound, rtols):
     """Lanes whose first-order bound cannot vouch for their period."""
     return (status == SUCCESS) & ~(bound <= PROMISE * rtols)

@@ -2,6 +2,7 @@
 pass, "matched" in two legs (and, with the first-order error bound, a second round
 for the lanes it cannot vouch for)."""
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -20,7 +21,7 @@ from .._results import (
 )
 from .._stepper.base import AbstractStepper
 from .._stepper.taylor import TaylorStepper
-from .estimate import LOOSER, needs_second_solve, screen
+from .estimate import LOOSER, needs_second_solve, screen, screen_quarter
 from .events import MAX_SPEED, POSITION, TURNING
 from .far_turning_point import far_turning_point
 from .kernel import Lanes, PassResult, run_pass
@@ -44,9 +45,11 @@ class Method(eqx.Module):
 
     @property
     def screened(self):
-        """Whether the error estimate is the first-order bound where it vouches."""
+        """Whether the error estimate is the first-order bound where it vouches:
+        Taylor steps, and legs from rest to the point of maximum speed ("matched",
+        "quarter")."""
         taylor = isinstance(self.stepper, TaylorStepper)
-        return self.estimate and self.method == "matched" and taylor
+        return self.estimate and self.method in ("matched", "quarter") and taylor
 
 
 class MethodResult(eqx.Module):
@@ -165,6 +168,9 @@ def run_method(
     zeros = jnp.zeros_like(q0)
     live = jnp.ones(q0.shape, bool)
     solve = _Solve(L, m, consts, t_max, energy_tol)
+    if m.method == "quarter" and screened:
+        lanes0 = Lanes(q0, zeros, _kinds(q0, MAX_SPEED), rtols, atols, live)
+        return _quarter_screened(solve, lanes0, rtols)
     if m.method != "matched":
         return _one_pass(solve, q0, zeros, rtols, atols, live)
     lanes0 = Lanes(q0, zeros, _kinds(q0, MAX_SPEED), rtols, atols, live)
@@ -175,12 +181,18 @@ def run_method(
 
 def _one_pass(solve: _Solve, q0, zeros, rtols, atols, live) -> MethodResult:
     """ "half", "quarter" or "full": one pass to the event."""
+    kind = {"half": TURNING, "quarter": MAX_SPEED, "full": TURNING}[solve.m.method]
+    res = solve.run(Lanes(q0, zeros, _kinds(q0, kind), rtols, atols, live))
+    return _one_pass_result(solve, q0, rtols, res)
+
+
+def _one_pass_result(solve: _Solve, q0, rtols, res: PassResult) -> MethodResult:
+    """The period of "half", "quarter" or "full" from its pass."""
     kind, factor = {
         "half": (TURNING, 2.0),
         "quarter": (MAX_SPEED, 4.0),
         "full": (TURNING, 1.0),
     }[solve.m.method]
-    res = solve.run(Lanes(q0, zeros, _kinds(q0, kind), rtols, atols, live))
     status, t_e, q_e, qd_e = res.status, res.t_event, res.q_end, res.qdot_end
     # The far side of the swing, for `blame_coordinates`: where the solve stopped, or
     # past the point of maximum speed by as much again.
@@ -325,19 +337,71 @@ def _matched_screened(solve: _Solve, lanes0: Lanes, rtols, atols) -> MethodResul
     _, _, _, _, (rounds, ex), pos, passes = jax.lax.while_loop(
         lambda c: c[0] < c[-1], body, init
     )
-    return _unpack_rounds(rounds, ex, pos, passes, rtols)
+    return _unpack_rounds(rounds, ex, pos, passes > 2, rtols)
 
 
-def _unpack_rounds(rounds, ex, pos, passes, rtols) -> MethodResult:
+def _quarter_screened(solve: _Solve, lanes0: Lanes, rtols) -> MethodResult:
+    """ "quarter" with the first-order bound (one leg of "matched"'s): a second
+    round, at `LOOSER` times the tolerances, of only the lanes the bound cannot
+    vouch for; both rounds through one instance of the kernel (a while loop over
+    the passes, as `_matched`)."""
+    dtype = lanes0.q0.dtype
+    res_shape = jax.eval_shape(lambda: solve.run(lanes0))
+
+    def round_of(lanes, res):
+        out = _one_pass_result(solve, lanes.q0, lanes.rtol, res)
+        bound = screen_quarter(out.periods, res.t_event, res.terms)
+        return _pack(dataclasses.replace(out, bound=bound), dtype)
+
+    rounds_shape = jax.eval_shape(round_of, lanes0, res_shape)
+    rounds_shape = jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct((2,) + x.shape, x.dtype), rounds_shape
+    )
+
+    def body(c):
+        k, lanes, rounds, pos, passes = c
+        res = solve.run(lanes)
+        packed = round_of(lanes, res)
+        rounds = jax.tree.map(lambda all_, x: all_.at[k].set(x), rounds, packed)
+
+        def new_round():
+            (T, status, _, _, bound), _ = packed
+            lanes_1, pos_1, count = _second_round(
+                lanes0, status.astype(jnp.int32), bound
+            )
+            more = jnp.where(count > 0, passes, 1).astype(passes.dtype)
+            return lanes_1, pos_1, more
+
+        lanes, pos, passes = jax.lax.cond(
+            k == 0, new_round, lambda: (lanes, pos, passes)
+        )
+        return k + 1, lanes, rounds, pos, passes
+
+    # (2 passes, but not a constant XLA can see through.)
+    passes = jnp.where(jnp.all(rtols > -1.0), 2, 1).astype(jnp.int32)
+    init = (
+        jnp.zeros((), jnp.int32),
+        lanes0,
+        _blank(rounds_shape),
+        jnp.zeros(lanes0.q0.shape, jnp.int32),
+        passes,
+    )
+    _, _, (rounds, ex), pos, passes = jax.lax.while_loop(
+        lambda c: c[0] < c[-1], body, init
+    )
+    return _unpack_rounds(rounds, ex, pos, passes > 1, rtols)
+
+
+def _unpack_rounds(rounds, ex, pos, second, rtols) -> MethodResult:
     """The first round's results, with the second round's (back in lane order) where
-    the bound could not vouch for a lane."""
+    the bound could not vouch for a lane (`second`: whether it ran)."""
     i32 = lambda x: x.astype(jnp.int32)
     T, status, steps, q_far, bound = rounds[0]
     status, steps = i32(status), i32(steps)
     # (Without the second round, nothing to redo: its outputs are blank.)
-    redo = needs_second_solve(status, bound, rtols) & (passes > 2)
+    redo = needs_second_solve(status, bound, rtols) & second
     T2, status2, steps2 = rounds[1][:3, pos]
     steps = steps + jnp.where(redo, i32(steps2), 0)
     status2 = i32(status2)
-    executed = ex[0] + jnp.where(passes > 2, ex[1], 0)
+    executed = ex[0] + jnp.where(second, ex[1], 0)
     return MethodResult(T, status, steps, executed, q_far, bound, redo, T2, status2)

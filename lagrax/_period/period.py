@@ -151,10 +151,10 @@ def period(
     - `throw`: raise on failure (under `jit`/`vmap` an equinox runtime error); with
         `throw=False` a failure gives NaN.
     - `error_estimate`: also return an estimate of $|T - T_\text{exact}|/T$ (see
-        `sweep_periods`: with `lagrax.Taylor()` and `"matched"` a first-order bound
-        from the solve itself, else, or where that bound cannot vouch for it, a
-        second solve at looser tolerances), and report a lane whose estimate
-        exceeds 100 rtol as `tolerance_not_met`.
+        `sweep_periods`: with `lagrax.Taylor()` and `"matched"` or `"quarter"` a
+        first-order bound from the solve itself, else, or where that bound cannot
+        vouch for it, a second solve at looser tolerances), and report a lane whose
+        estimate exceeds 100 rtol as `tolerance_not_met`.
 
     **Returns:**
 

@@ -82,7 +82,8 @@ def sweep_periods(
     Amplitudes and tolerances are arrays: changing them never recompiles.
 
     Each period comes with an error estimate (`error_estimate=True`, the default). With
-    the default method and a Taylor step it comes from the solve itself: a first-order
+    a Taylor step and `"matched"` (the default) or `"quarter"` it comes from the solve
+    itself: a first-order
     bound that carries each step's error bound (truncation and rounding) to the period,
     as a time shift along the orbit and an energy error times its leverage on the rest
     of the leg, $\int dt/(M\dot q^2)$, plus the far turning point's rounding band times
