@@ -33,6 +33,10 @@ from .reuse import resolved_solver
 from .solver import stepper_of
 
 
+# Lanes per device on a CPU by default (also `lagrax sweep`'s: they share programs).
+CPU_CHUNK = 256
+
+
 def _lane_order(q0):
     """The order the lanes run in: by decreasing |q0|, so that neighbouring lanes
     hold neighbouring release points (and, where the well's bottom is near 0, the
@@ -217,7 +221,12 @@ def sweep_periods(
     devices = check_devices(jax.devices() if devices is None else devices)
     per_device = -(-size_class(q0.shape[0]) // len(devices))
     chunk_size = lane_count(
-        chunk_size, "chunk_size", devices, per_device, cpu=256, accelerator=1 << 18
+        chunk_size,
+        "chunk_size",
+        devices,
+        per_device,
+        cpu=CPU_CHUNK,
+        accelerator=1 << 18,
     )
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")

@@ -33,11 +33,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import executables
+from .._jaxpr import scalarize as _scalarize
 from .._jaxpr.fusion import fusion_off
 from .._stepper.compact import CompactTaylorStepper
 from .._stepper.taylor import TaylorStepper
 from .._taylor import compact
-from .._taylor.system import _SystemProgram
+from .._taylor.system import _eval_entries, _SystemProgram
 from .._trajectory.batch import _compact_mode
 from .mechanics import AutodiffMechanics, CompactLagrangian, PeriodTapes
 
@@ -59,14 +60,21 @@ _RATE: dict = {}
 
 # The smallest sizes of the tapes (`compact.build`'s `size`), so that most
 # Lagrangians of one coordinate share one executable: the families of every
-# period program, and sizes above those of the systems in `lagrax.systems`.
+# period program, and sizes that hold the natural systems of `lagrax.systems`
+# (the pendulum, the cycloid, the asymmetric well, rectilinear motion).
 _FAMILIES = (compact.AFFINE, compact.RARE, compact.LOGIC, compact.SINCOS)
 _SIZE = {
-    "step": dict(families=_FAMILIES, S=128, NB0=32, NB=16, H=16),
-    "point": dict(families=_FAMILIES, S=256, NB0=64, NB=16, H=16),
-}
+    "step": dict(
+        families=_FAMILIES, S=128, NB0=64, H=32, NB=32, B1cau=8, B1slin=8,
+        B1dlin=16, B00=16, B01=32, B02=8, B03=2,
+    ),
+    "point": dict(
+        families=_FAMILIES, S=256, NB0=64, H=64, NB=64, B1cau=32, B1slin=16,
+        B1dlin=16, B00=32, B01=32, B02=4, B03=2,
+    ),
+}  # fmt: skip
 # Parameter inputs per tape: a multiple of this (the unused ones zero).
-_PARAMS = 4
+_PARAMS = 8
 
 
 def _concrete(tree) -> bool:
@@ -98,10 +106,20 @@ def n_params(n):
 
 def _tape(fn, n_series, n_params, dtype, size):
     """The compact tape of `fn(*scalars)`: its first `n_series` inputs `(t, y...)`,
-    then `n_params` parameters; its outputs a tuple of scalars."""
+    then `n_params` parameters; its outputs a tuple of scalars. Its program is
+    built entry by entry, as `System`'s (a Lagrangian of particles computes with
+    their position vectors)."""
     scalar = jax.ShapeDtypeStruct((), dtype)
+    specs = [scalar] * (n_series + n_params)
     with fusion_off():  # (an identity for XLA; no opcode for it)
-        closed = jax.make_jaxpr(fn)(*([scalar] * (n_series + n_params)))
+        closed = jax.make_jaxpr(fn)(*specs)
+
+        def entries(*args):
+            args = [_scalarize._filled((), [a]) for a in args]
+            outs = _eval_entries(closed.jaxpr, closed.consts, args)
+            return tuple(jnp.asarray(o.reshape(()).item(), dtype) for o in outs)
+
+        closed = jax.make_jaxpr(entries)(*specs)
     prog = _SystemProgram(closed, n_series, n_params)
     return compact.build(prog, prog.inputs, prog.params, prog.outs, dtype, size=size)
 
