@@ -156,6 +156,37 @@ def test_the_tier_rule(monkeypatch, tmp_path):
     assert tier.plan(*args) is None
 
 
+def test_the_compact_program_runs_once_at_hand_or_for_a_second_new_lagrangian(
+    monkeypatch, tmp_path
+):
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(tier, "_COMPILED", collections.Counter())
+    monkeypatch.setattr(tier, "_NOTIFIED", set())
+    monkeypatch.setattr(executables, "_LOADED", {})
+    ran = []
+    monkeypatch.setattr(executables, "call", lambda *a: ran.append(a) or a[3])
+    taylor = TaylorStepper(order=20, max_step=np.inf)
+    q0 = np.linspace(0.1, 1.0, 8)
+
+    def compact_call(g):
+        L_c, consts = canonical_lagrangian(pendulum.lagrangian(g=g), jnp.float64)
+        plan = tier.plan(L_c, consts, taylor, "config", 8, jnp.float64)
+        return tier.Compact(plan, "jitted", ("static",), None, (q0,))
+
+    # The first new Lagrangian of a process: today's specialized program.
+    assert compact_call(1.0).run("sweep", lambda: "specialized") == "specialized"
+    assert not ran
+    # The second: the compact program, compiled with a notice.
+    with pytest.warns(UserWarning, match="once per machine"):
+        assert compact_call(2.0).run("sweep", lambda: "specialized") is q0
+    assert len(ran) == 1
+    # At hand (compiled here, or on disk): taken at once, in a later process too.
+    monkeypatch.setattr(tier, "_COMPILED", collections.Counter())
+    call = compact_call(3.0)
+    executables._LOADED[executables._key(call.static, call.args)] = None
+    assert call.ready() and call.run("sweep", lambda: "specialized") is q0
+
+
 @pytest.fixture
 def compact_cache(executable_cache, monkeypatch):
     """The library's disk cache in a folder of the test's own, and `new_process()`

@@ -308,33 +308,33 @@ def _padded(run, q0, order, size) -> tuple[Periods, Array]:
 def _eager(L_c, cfg, devices, q, order, args):
     """The compiled sweep of concrete inputs: the specialized program where it is
     compiled or on disk, or where the compact tier does not apply or its work
-    would repay the specialized compile (`tier.py`); else the compact program."""
+    would repay the specialized compile; else the compact program, where its
+    executable is at hand (`tier.py`)."""
     jitted = _sweep_jit(L_c, cfg, devices)
     origin = (_sweep_jit, L_c, cfg, devices)
     call = (jitted, None, q, order, *args)
-    if not executables.available(*call, origin=origin):
-        n = q.shape[0]
-        kind = "sweep" if n > 1 else "period"
+    specialized = lambda: executables.cached_call(
+        *call, origin=origin, out_tree=_OUT_TREE
+    )
+    n = q.shape[0]
+    kind = "sweep" if n > 1 else "period"
+    plan = None
+    if tier.always() or not executables.available(*call, origin=origin):
         plan = tier.plan(L_c, args[0], cfg.stepper, (cfg, devices), n, q.dtype, kind)
-        if plan is not None:
-            return _compact(plan, cfg, devices, q, order, args, kind)
-    return executables.cached_call(*call, origin=origin, out_tree=_OUT_TREE)
-
-
-def _compact(plan, cfg, devices, q, order, args, kind):
-    """The sweep on the compact program (`tier.Plan`), its executable kept on disk
-    once per machine and size class."""
+    if plan is None:
+        return specialized()
     m = dataclasses.replace(cfg, stepper=plan.stepper)
     # (With XLA's elemental CPU emitters: the compact program, loops over the
-    # tape's blocks, compiles faster and runs as fast.)
+    # tape's blocks, compiles faster.)
     elemental = devices[0].platform == "cpu"
-    jitted = _sweep_jit(plan.L, m, devices, elemental)
-    static = (plan.L, m, devices, elemental)
-    plan.start()
-    out = executables.call(jitted, static, _OUT_TREE, q, order, plan.consts, *args[1:])
-    jax.block_until_ready(out)
-    plan.record(kind, q.shape[0])
-    return out
+    compact = tier.Compact(
+        plan,
+        _sweep_jit(plan.L, m, devices, elemental),
+        (plan.L, m, devices, elemental),
+        _OUT_TREE,
+        (q, order, plan.consts, *args[1:]),
+    )
+    return compact.run(kind, specialized)
 
 
 def _in_pieces(run, q0, order, size, progress, pad=None) -> tuple[Periods, Array]:
@@ -412,26 +412,29 @@ def _jacobian(L, m, devices, elemental, order, rest, q0, consts, with_q, wanted)
     options = elemental_options() if elemental else None
     origin = (_jacobian_jit, L, m, devices, elemental, with_q, wanted)
     call = (jac, options, q0, order, consts, *rest)
-    if not executables.available(*call, origin=origin):
-        n = q0.shape[0]
+    specialized = lambda: executables.cached_call(
+        *call, origin=origin, out_tree=_JACOBIAN_OUT_TREE
+    )
+    n = q0.shape[0]
+    plan = None
+    if tier.always() or not executables.available(*call, origin=origin):
         plan = tier.plan(L, consts, m.stepper, (m, devices), n, q0.dtype, "jacobian")
-        if plan is not None:
-            m_t = dataclasses.replace(m, stepper=plan.stepper)
-            # (The tapes are constants; the parameters padded beyond the
-            # Lagrangian's are not differentiated: the same directions.)
-            tapes = len(jax.tree.leaves(plan.consts[0]))
-            pad = len(plan.consts) - 1 - len(wanted)
-            wanted_t = (False,) * tapes + tuple(wanted) + (False,) * pad
-            jac_t = _jacobian_jit(plan.L, m_t, devices, elemental, with_q, wanted_t)
-            static = (plan.L, m_t, devices, elemental, with_q, wanted_t)
-            plan.start()
-            out = executables.call(
-                jac_t, static, _JACOBIAN_OUT_TREE, q0, order, plan.consts, *rest
-            )
-            jax.block_until_ready(out)
-            plan.record("jacobian", n)
-            return out
-    return executables.cached_call(*call, origin=origin, out_tree=_JACOBIAN_OUT_TREE)
+    if plan is None:
+        return specialized()
+    m_t = dataclasses.replace(m, stepper=plan.stepper)
+    # (The tapes are constants; the parameters padded beyond the Lagrangian's are
+    # not differentiated: the same directions.)
+    tapes = len(jax.tree.leaves(plan.consts[0]))
+    pad = len(plan.consts) - 1 - len(wanted)
+    wanted_t = (False,) * tapes + tuple(wanted) + (False,) * pad
+    compact = tier.Compact(
+        plan,
+        _jacobian_jit(plan.L, m_t, devices, elemental, with_q, wanted_t),
+        (plan.L, m_t, devices, elemental, with_q, wanted_t),
+        _JACOBIAN_OUT_TREE,
+        (q0, order, plan.consts, *rest),
+    )
+    return compact.run("jacobian", specialized)
 
 
 @functools.lru_cache(maxsize=64)

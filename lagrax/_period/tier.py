@@ -26,7 +26,9 @@ only), "2" (the compact one wherever it applies: benchmarks, tests).
 """
 
 import collections
+import os
 import time
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -172,6 +174,11 @@ def applies(stepper) -> bool:
     )
 
 
+def always() -> bool:
+    """`LAGRAX_COMPACT=2`: the compact program wherever it applies."""
+    return _compact_mode() == "2"
+
+
 class Plan:
     """How a compact call runs: its Lagrangian, constants and stepper; `record`
     after it ran (the time spent, for the ski rental)."""
@@ -213,3 +220,72 @@ def plan(L_c, consts, stepper, key, n, dtype, kind="sweep"):
     params += [np.zeros((), dtype)] * (L_t.n_params - len(params))
     taped = CompactTaylorStepper(order=stepper.order, max_step=stepper.max_step)
     return Plan(L_t, [tapes, *params], taped, count)
+
+
+# Specialized programs compiled in this process for a Lagrangian new to it, per
+# kind: the second such Lagrangian compiles the compact program instead.
+_COMPILED: collections.Counter = collections.Counter()
+_NOTIFIED: set = set()
+
+
+class Compact:
+    """One call of the compact program (`Plan`): `jitted` its function, `static`
+    what besides the arguments' shapes determines it (`executables.call`)."""
+
+    def __init__(self, plan, jitted, static, out_tree, args):
+        self.plan, self.jitted, self.static = plan, jitted, static
+        self.out_tree, self.args = out_tree, args
+
+    def ready(self) -> bool:
+        """Whether the executable is compiled in this process or on disk."""
+        # (The cache's own tables and paths: `executables.call` has no
+        # `available` of its own yet.)
+        key = executables._key(self.static, self.args)
+        path = executables._path(key)
+        return key in executables._LOADED or (path is not None and os.path.exists(path))
+
+    def run(self, kind, specialized):
+        """The compact program where its executable is at hand, or where the
+        process compiled a specialized program of this kind for another
+        Lagrangian already (new Lagrangians come often: the compact one, compiled
+        once per machine, serves them all) or `always()`; else `specialized()`
+        (today's first call)."""
+        ready = self.ready()
+        if not (ready or always() or _COMPILED[kind]):
+            _COMPILED[kind] += 1
+            return specialized()
+        if not ready:
+            _notify(kind)
+        self.plan.start()
+        out = executables.call(self.jitted, self.static, self.out_tree, *self.args)
+        jax.block_until_ready(out)
+        self.plan.record(kind, self.args[0].shape[0])
+        return out
+
+
+def _notify(kind):
+    """One line, once per kind, before the compact program's compile."""
+    if kind in _NOTIFIED:
+        return
+    _NOTIFIED.add(kind)
+    what = {"jacobian": "derivative of a period sweep"}.get(kind, "period sweep")
+    warnings.warn(
+        f"lagrax: compiling the {what} for Lagrangians as data, once per machine "
+        "(tens of seconds); later processes load it, and a new Lagrangian then "
+        "runs without compiling.",
+        stacklevel=_caller_level(),
+    )
+
+
+def _caller_level() -> int:
+    """The `stacklevel` of the first frame outside lagrax and JAX (the user's
+    call, however deep the library's and JAX's transformations are)."""
+    import sys
+
+    level, frame = 1, sys._getframe(1)
+    while frame is not None:
+        module = frame.f_globals.get("__name__", "")
+        if not module.startswith(("lagrax.", "jax.", "jax")):
+            return level
+        level, frame = level + 1, frame.f_back
+    return 1
