@@ -34,24 +34,21 @@ enable one are removed from the workers' environment), float64:
   `SaveAt(ts=jnp.linspace(0, 10, 101))`): the first call, a rebuilt `L` (another
   g) in the same process, and a later process (a third g) sharing the first one's
   disk cache of executables (empty at the start).
-- the tape path (`LAGRAX_TAPE_TIER=1`: L as data, one executable per machine kept
-  in the library's own cache): a new Lagrangian (g = 1.3) in a fresh process with
-  that cache empty (the executable compiled and written once), then in another
-  fresh process with it filled; and its steady state beside the specialized one;
-  then 1000 amplitudes from the same cache (the same executable: the tape path runs
-  in pieces of one size).
-- `--only tape`: the tape path alone, its cold process then three warm ones (a new g
-  each), and what its executable is made of: the size on disk and the load time of
-  the whole period program on the tape path, beside one interpreter compiled alone
-  (the step's, order 20, and one at order 0, each over 256 lanes): the program
-  inlines an interpreter at each place it evaluates L.
+- the tiers (`--only tier` alone): a new Lagrangian (a new g each) in fresh
+  processes sharing the library's disk cache: its compact programs compiled once
+  (`LAGRAX_COMPACT=2`, the cache empty: "once per machine"), then with the
+  defaults on that machine (the compact tier: its tapes, the executable's load,
+  the run), its steady state beside the specialized program's and the two
+  compared; the first `jax.grad` of a 1000-amplitude sweep likewise; the first
+  `lagrax.period` of a new `L` in a process and in a later one; sweeps of 2000
+  then 2001 amplitudes in one process (one size class).
 
-    python benchmarks/first_result.py [--quick] [--core 1] [--only eager|tape]
+    python benchmarks/first_result.py [--quick] [--core 1] [--only eager|tier|chains]
 
 `--quick`: 10^3 and 4096 amplitudes only, the gradient of 64, no CLI run, the eager
 `simulate` rows with Tsit5 only. `--only eager`: the eager `simulate` rows alone.
 Writes `benchmarks/results/first_result.json` (or `first_result_quick.json`,
-`first_result_eager.json`, `first_result_tape.json`).
+`first_result_eager.json`, `first_result_tier.json`, `first_result_chains.json`).
 """
 
 import argparse
@@ -70,7 +67,7 @@ RESULTS = os.path.join(HERE, "results")
 # The environment variables through which a persistent JAX compile cache could be
 # enabled, removed from the workers' environment.
 _CACHE_VARS = (
-    "LAGRAX_TAPE_TIER",
+    "LAGRAX_COMPACT",
     "JAX_COMPILATION_CACHE_DIR",
     "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
     "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES",
@@ -177,11 +174,49 @@ def work_sweep(args):
     return row
 
 
-def work_tape(args):
-    """A new Lagrangian's first sweep on the tape path, then its steady state and
-    the specialized program's, in one process."""
-    jax, lagrax, row, stages = _jax_import()
+def _tier_timers(jax):
+    """Timers of the compact tier's parts in this process: the tapes' building,
+    the executables' loads, and the compact calls (load + run)."""
+    from jax.experimental import serialize_executable
+
     from lagrax._period import tier
+
+    spent = dict(tapes_s=0.0, load_s=0.0, compact_s=0.0)
+
+    def timed(fn, name):
+        def wrapped(*a, **kw):
+            start = time.perf_counter()
+            try:
+                return fn(*a, **kw)
+            finally:
+                spent[name] += time.perf_counter() - start
+
+        return wrapped
+
+    tier._build = timed(tier._build, "tapes_s")
+    serialize_executable.deserialize_and_load = timed(
+        serialize_executable.deserialize_and_load, "load_s"
+    )
+    record = tier.Plan.record
+
+    def recorded(self, kind, n):
+        spent["compact_s"] += time.perf_counter() - self._start
+        return record(self, kind, n)
+
+    tier.Plan.record = recorded
+    return spent
+
+
+def work_tier(args):
+    """A new Lagrangian's first sweep as the tiers take it (`LAGRAX_COMPACT`, the
+    disk cache of the environment), then its steady state; with `--repeat` also
+    the specialized program's in the same process, and the two compared."""
+    jax, lagrax, row, stages = _jax_import()
+    import numpy as np
+
+    from lagrax._cache import executables
+
+    spent = _tier_timers(jax)
     from lagrax.systems import pendulum
 
     a = _amplitudes(args.n)
@@ -189,62 +224,53 @@ def work_tape(args):
     g = 1.3 if args.g is None else args.g
     L = pendulum.lagrangian(g=g)
     r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "first", stages)
-    row.update(times)
+    row.update(times, **{f"first_{k}": v for k, v in spent.items()})
+    row["first_tier"] = "compact" if spent["compact_s"] else "specialized"
+    row.update(stats=dict(executables.STATS))
     err, failed = _max_error(r.periods, _exact(a, g=g))
     row.update(n=args.n, max_rel_error=err, failed=failed)
+    _, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "steady")
+    row.update(times)
     if args.repeat:
-        r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "tape_steady")
+        os.environ["LAGRAX_COMPACT"] = "0"
+        r2, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "spec_first")
         row.update(times)
-        tier.SPECIALIZE_AFTER = 0
-        lagrax.sweep_periods(L, q0).periods.block_until_ready()
         r2, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), "spec_steady")
         row.update(times)
-        diff = abs(r.periods / r2.periods - 1)
+        ok = np.asarray(r2.ok)
+        diff = np.abs(np.asarray(r.periods) / np.asarray(r2.periods) - 1)
+        ratio = np.asarray(r.error_estimate)[ok] / np.asarray(r2.error_estimate)[ok]
         row.update(
-            tape_vs_specialized=float(jax.numpy.nanmax(diff)),
-            same_status=bool((r.status == r2.status).all()),
+            compact_vs_specialized=float(np.nanmax(diff)),
+            same_status=bool((np.asarray(r.status) == np.asarray(r2.status)).all()),
+            estimate_ratio=[float(ratio.min()), float(ratio.max())],
         )
     return row
 
 
-def work_tape_parts(args):
-    """Size and load time of the tape path's executable (from `args.cache`) and of
-    one interpreter compiled alone: the step's (order 20) and one at order 0."""
-    jax, lagrax, row, _ = _jax_import()
-    import numpy as np
-    from jax.experimental import serialize_executable
-
-    from lagrax._jaxpr.canonical import canonical_lagrangian
-    from lagrax._jaxpr.fusion import ELEMENTAL
-    from lagrax._period import tier
-    from lagrax._taylor.tape import tape_coefficients, tape_series
+def work_sizes(args):
+    """A sweep of `n` amplitudes, then of `n + 1` (one size class) in one process."""
+    jax, lagrax, row, stages = _jax_import()
     from lagrax.systems import pendulum
 
-    jnp = jax.numpy
-    L_c, consts = canonical_lagrangian(pendulum.lagrangian(g=1.3), np.float64)
-    L_t, tapes = tier.tapes_of(L_c, consts, np.float64)
-    W, P = 256, L_t.n_params
-    z = jnp.zeros((W,))
+    L = pendulum.lagrangian()
+    for name, n in (("first", args.n), ("plus_one", args.n + 1)):
+        q0 = jax.numpy.asarray(_amplitudes(n))
+        r, times = _timed(jax, lambda: lagrax.sweep_periods(L, q0), name, stages)
+        err, failed = _max_error(r.periods, _exact(_amplitudes(n)))
+        row.update(times, **{f"{name}_max_rel_error": err, f"{name}_failed": failed})
+    return row
 
-    def step(tape, s, x, v, params):
-        return tape_coefficients(tape, 20, s, x, v, list(params), trig=True)
 
-    def order0(tape, xs):
-        return tape_series(tape, list(xs), 0, trig=True)
+def work_period(args):
+    """`lagrax.period` (one amplitude, its defaults) of a new Lagrangian."""
+    jax, lagrax, row, stages = _jax_import()
+    from lagrax.systems import pendulum
 
-    parts = dict(
-        step=(step, (tapes.scaled, z, z, z, jnp.zeros((P + 3, W)))),
-        order0=(order0, (tapes.point, jnp.zeros((3 + P, W)))),
-    )
-    for name, (fn, fn_args) in parts.items():
-        compiled = jax.jit(fn, compiler_options=ELEMENTAL).lower(*fn_args).compile()
-        blob, in_tree, out_tree = serialize_executable.serialize(compiled)
-        start = _clock()
-        serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
-        row.update(_since(start, f"{name}_load"), **{f"{name}_bytes": len(blob)})
-    # (The library's entry on disk: a pickle holding the serialized executable.)
-    paths = [os.path.join(args.cache, f) for f in os.listdir(args.cache) if f[0] == "t"]
-    row["program_bytes"] = max(os.path.getsize(f) for f in paths)
+    g = 1.0 if args.g is None else args.g
+    L = pendulum.lagrangian(g=g)
+    T, times = _timed(jax, lambda: lagrax.period(L, 1.0), "first", stages)
+    row.update(times, rel_error=float(T / _exact([1.0], g=g)[0] - 1))
     return row
 
 
@@ -252,17 +278,20 @@ def work_grad(args):
     jax, lagrax, row, stages = _jax_import()
     from lagrax.systems import pendulum
 
+    spent = _tier_timers(jax)
     q0 = jax.numpy.asarray(_amplitudes(args.n))
-    L = pendulum.lagrangian()
+    g = 1.0 if args.g is None else args.g
+    L = pendulum.lagrangian(g=g)
     mean_period = lambda q: lagrax.sweep_periods(L, q).periods.mean()
-    g, times = _timed(jax, lambda: jax.grad(mean_period)(q0), "first", stages)
-    row.update(times)
+    d, times = _timed(jax, lambda: jax.grad(mean_period)(q0), "first", stages)
+    row.update(times, **{f"first_{k}": v for k, v in spent.items()})
+    row["first_tier"] = "compact" if spent["compact_s"] else "specialized"
     if args.repeat:
-        g, times = _timed(jax, lambda: jax.grad(mean_period)(q0), "second", stages)
+        d, times = _timed(jax, lambda: jax.grad(mean_period)(q0), "second", stages)
         row.update(times)
     # dT/dq0 of the mean, against the derivative of the exact period.
-    exact = jax.grad(lambda q: pendulum.period(q).mean())(q0)
-    rel = float(jax.numpy.max(jax.numpy.abs(g / exact - 1)))
+    exact = jax.grad(lambda q: pendulum.period(q, g=g).mean())(q0)
+    rel = float(jax.numpy.max(jax.numpy.abs(d / exact - 1)))
     row.update(n=args.n, max_rel_error=rel)
     return row
 
@@ -562,8 +591,9 @@ WORKERS = dict(
     chain=work_chain,
     chain_heyoka=work_chain_heyoka,
     sweep=work_sweep,
-    tape=work_tape,
-    tape_parts=work_tape_parts,
+    tier=work_tier,
+    sizes=work_sizes,
+    period=work_period,
     grad=work_grad,
     simulate=work_simulate,
     batch=work_batch,
@@ -644,14 +674,13 @@ def main():
     p.add_argument("--system", default="pendulum")
     p.add_argument("--solver", default="tsit5", help="eager: tsit5, dopri8, taylor")
     p.add_argument("--ts", type=int, default=0, help="eager: save at n times")
-    p.add_argument("--only", choices=("all", "eager", "tape", "chains"), default="all")
+    p.add_argument("--only", choices=("all", "eager", "tier", "chains"), default="all")
     p.add_argument(
         "--elemental", action="store_true", help="simulate: XLA's elemental emitters"
     )
     p.add_argument(
         "--batch-solver", default="taylor", help="batch: taylor, tsit5, dopri8"
     )
-    p.add_argument("--cache", help="tape_parts: the cache directory to read")
     p.add_argument("--links", type=int, default=4, help="chain: its links")
     p.add_argument("--tol", type=float, default=1e-12, help="chain: the tolerance")
     p.add_argument("--compact", action="store_true", help="chain_heyoka: compact")
@@ -669,8 +698,8 @@ def main():
         out = dict(eager=eager_rows(args.core, quick=args.quick))
         _write_results(args, out, "first_result_eager.json")
         return
-    if args.only == "tape":
-        _write_results(args, tape_rows(args.core), "first_result_tape.json")
+    if args.only == "tier":
+        _write_results(args, tier_rows(args.core), "first_result_tier.json")
         return
     if args.only == "chains":
         out = chain_rows(args.core, args.chains)
@@ -717,20 +746,7 @@ def main():
     for name, row in zip(("empty", "filled", "filled, new g"), out["batch_rerun"]):
         print(f"simulate_batch, cache {name}", json.dumps(row))
     out["eager"] = eager_rows(c, quick=args.quick)
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(LAGRAX_TAPE_TIER="1", LAGRAX_CACHE_DIR=cache)
-        out["tape_cold"] = spawn(c, "tape", env=env, n=4096)
-        out["tape_warm"] = spawn(c, "tape", env=env, n=4096, repeat=True)
-        out["tape_other_n"] = spawn(c, "tape", env=env, n=1000)
-        # (The tape path's entries are named t*.bin; p*.bin are the specialized
-        # programs the `--repeat` row compiled.)
-        out["tape_executables"] = sum(
-            name.startswith("t") for _, _, files in os.walk(cache) for name in files
-        )
-    print("tape path, cache empty", json.dumps(out["tape_cold"]))
-    print("tape path, cache filled", json.dumps(out["tape_warm"]))
-    print("tape path, 1000 amplitudes", json.dumps(out["tape_other_n"]))
-    print("tape executables on disk", out["tape_executables"])
+    out["tier"] = tier_rows(c)
     if not args.quick:
         out["cli"] = cli_default_job(c)
         print("cli", json.dumps(out["cli"]))
@@ -773,23 +789,49 @@ def eager_rows(core, quick=False):
     return rows
 
 
-def tape_rows(core):
-    """The tape path: a cold process, three warm ones (new g each, the first also
-    its steady state beside the specialized program's), and its executable's parts."""
-    out = {}
+def tier_rows(core):
+    """A new Lagrangian's first sweep, first `jax.grad` and first `lagrax.period`
+    through the tiers, beside heyoka.py's script and the specialized program's
+    first call; and a count one past a size class."""
+    out = dict(heyoka=spawn(core, "heyoka", n=4096))
+    print("heyoka.py, 4096", json.dumps(out["heyoka"]), flush=True)
+    # Today's first call: the specialized program, the disk cache off.
+    out["specialized"] = spawn(core, "sweep", n=4096)
+    out["grad_specialized"] = spawn(core, "grad", n=1000)
+    print("specialized", json.dumps(out["specialized"]), flush=True)
+    print("grad, specialized", json.dumps(out["grad_specialized"]), flush=True)
     with tempfile.TemporaryDirectory() as cache:
-        env = dict(LAGRAX_TAPE_TIER="1", LAGRAX_CACHE_DIR=cache)
-        out["cold"] = spawn(core, "tape", env=env, n=4096)
+        # Once per machine: the compact programs compiled (`LAGRAX_COMPACT=2`).
+        once = dict(LAGRAX_CACHE_DIR=cache, LAGRAX_COMPACT="2")
+        out["compact_cold"] = spawn(core, "tier", env=once, n=4096, g=1.3)
+        out["grad_compact_cold"] = spawn(core, "grad", env=once, n=1000, g=1.3)
+        print("compact, cold", json.dumps(out["compact_cold"]), flush=True)
+        print("grad, compact, cold", json.dumps(out["grad_compact_cold"]), flush=True)
+        # A machine that has run lagrax: the defaults, a new Lagrangian each.
+        env = dict(LAGRAX_CACHE_DIR=cache)
         out["warm"] = [
-            spawn(core, "tape", env=env, n=4096, g=g, repeat=(g == 1.4))
+            spawn(core, "tier", env=env, n=4096, g=g, repeat=(g == 1.4))
             for g in (1.4, 1.5, 1.6)
         ]
-        out["parts"] = spawn(core, "tape_parts", cache=cache)
-    secs = lambda row: "failed" if row is None else f"{row['first_s']:.3g} s"
-    print(f"tape path, cache empty: first call {secs(out['cold'])}")
-    print("tape path, cache filled:", ", ".join(secs(r) for r in out["warm"]))
-    print("steady (tape, specialized):", json.dumps(out["warm"][0]))
-    print("parts", json.dumps(out["parts"]))
+        for row in out["warm"]:
+            print("compact, warm", json.dumps(row), flush=True)
+        out["grad_warm"] = [
+            spawn(core, "grad", env=env, n=1000, g=g) for g in (1.4, 1.5)
+        ]
+        for row in out["grad_warm"]:
+            print("grad, warm", json.dumps(row), flush=True)
+        out["executables"] = {
+            name: os.path.getsize(os.path.join(cache, name))
+            for name in os.listdir(cache)
+            if name.endswith(".bin")
+        }
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(LAGRAX_CACHE_DIR=cache)
+        out["period"] = [spawn(core, "period", env=env, g=g) for g in (1.0, 1.3)]
+    for row in out["period"]:
+        print("period", json.dumps(row), flush=True)
+    out["sizes"] = spawn(core, "sizes", n=2000)
+    print("sizes 2000, 2001", json.dumps(out["sizes"]), flush=True)
     return out
 
 

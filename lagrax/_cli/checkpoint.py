@@ -70,14 +70,20 @@ class Blocks:
         import numpy as np
 
         self.writer = jax.process_index() == 0
-        # A sweep smaller than one chunk per device would mostly run padding.
+        # The library's default chunk and size classes: `sweep_periods` with its
+        # defaults and `lagrax sweep` share their compiled programs (on disk too).
         from .._checks import lane_count
+        from .._period.sweep import CPU_CHUNK, size_class
 
-        share = -(-args.count // len(devices))
+        share = -(-size_class(args.count) // len(devices))
         self.chunk_size = lane_count(
-            args.chunk_size, "chunk_size", devices, share, cpu=128, accelerator=1 << 18
+            args.chunk_size,
+            "chunk_size",
+            devices,
+            share,
+            cpu=CPU_CHUNK,
+            accelerator=1 << 18,
         )
-        self.chunk_size = min(self.chunk_size, share)
         self.block = self.chunk_size * len(devices) * BLOCK_CHUNKS
         self.count = args.count
         self.n_blocks = {t.name: -(-args.count // self.block) for t in targets}

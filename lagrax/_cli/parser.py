@@ -136,9 +136,9 @@ def parser():
         "--chunk-size",
         type=int,
         default=None,
-        help="lanes per compiled batch and device (default 128 on a CPU: where the "
-        "step counts climb steeply towards a hump, bigger chunks leave more lanes "
-        "idle; on a GPU every amplitude of a device's share, up to 262144)",
+        help="lanes per compiled batch and device (default 256 on a CPU, as "
+        "lagrax.sweep_periods: the command and the library share their compiled "
+        "programs; on a GPU every amplitude of a device's share, up to 262144)",
     )
     s.add_argument(
         "--devices",

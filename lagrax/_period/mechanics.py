@@ -7,17 +7,17 @@ with its slope. `mechanics(L, consts)` gives them:
 
 - `AutodiffMechanics`: from $L$'s jaxpr by JAX's autodiff, compiled into the program
   (the specialized program, fast to run, seconds to compile per Lagrangian);
-- `TapeMechanics`: from tapes (`lagrax._taylor.tape`), $L$ as data: the program is
-  the same for every Lagrangian whose tapes fit its sizes, so that a new $L$ costs
-  its tapes, not a compile. The tapes are the acceleration in lane units, the point
-  quantities and $L$ at rest, each traced once from the canonical Lagrangian with
-  its constants as inputs; derivatives are their Taylor coefficients of order 1.
+- `CompactMechanics`: from two compact tapes (`lagrax._taylor.compact`), $L$ as
+  data: the program is the same for every Lagrangian whose tapes fit its size
+  class, so that a new $L$ costs its tapes, not a compile. The *step* tape is the
+  acceleration in a lane's units (the Taylor step's coefficients and the
+  accelerations in the loop); the *point* tape every other quantity at a point of
+  phase space, derivatives included (the jerk along the flow, the slope of $L$),
+  traced by JAX's autodiff before the tape is built.
 
 Each method works on one lane (scalars, or `(1,)` for coordinates) and is vmapped by
 its caller, except `lane_field_accel`, over lanes.
 """
-
-import functools
 
 import equinox as eqx
 import jax
@@ -25,35 +25,45 @@ import jax.numpy as jnp
 
 from .._eom.mechanics import _accelerations, _jacobi
 from .._jaxpr.trig import vectorized_trig
-from .._taylor.tape import Tape, tape_coefficients, tape_series
+from .._taylor.compact import compact_values, CompactTape
 
 
-class TapeSet(eqx.Module):
-    """The tapes of one Lagrangian: `scaled` `(s, x, v, q0, Qs, tau, *params) ->
-    accel` in lane units; `point` `(q, qdot, t, *params) -> (qddot, M, ok, energy,
-    energy scale, L)`; `rest` `(q, *params) -> L(q, 0, 0)`."""
+class PeriodTapes(eqx.Module):
+    r"""The compact tapes of one Lagrangian (`lagrax._period.tier.tapes_of`):
 
-    scaled: Tape
-    point: Tape
-    rest: Tape
+    - `step`: $f(s, (x, v); (q_0, Q, \tau, *p)) = (v, a)$, the acceleration in a
+        lane's own units;
+    - `point`: $(t; q, \dot q; *p) \mapsto$ the quantities `POINT` names:
+        $\ddot q$, the mass, whether it is definite, the Jacobi energy and the
+        scale of its rounding, $L$, $\partial L/\partial q$, and the jerk
+        $\dddot q$ along the flow.
+    """
+
+    step: CompactTape
+    point: CompactTape
 
 
-class TapeLagrangian(eqx.Module):
-    """A Lagrangian as data: `consts = (TapeSet, *params)`. Equal for every
-    Lagrangian whose tapes have the same sizes and number of parameters, so that the
-    compiled period program is shared."""
+# The point tape's outputs.
+POINT = ("qddot", "mass", "ok", "energy", "scale", "value", "slope", "jerk")
+QDDOT, MASS, OK, ENERGY, SCALE, VALUE, SLOPE, JERK = range(len(POINT))
+
+
+class CompactLagrangian(eqx.Module):
+    """A Lagrangian as data: `consts = (PeriodTapes, *params)`. Equal for every
+    Lagrangian whose tapes are of one size class with as many parameters, so that
+    the compiled period program is shared."""
 
     sizes: tuple = eqx.field(static=True)
     n_params: int = eqx.field(static=True)
 
     def __call__(self, q, qdot, t, *consts):
-        return TapeMechanics(self, list(consts)).value(q, qdot, t)
+        return CompactMechanics(self, list(consts)).value(q, qdot, t)
 
 
 def mechanics(L, consts):
     """The period program's view of `L(q, qdot, t, *consts)`."""
-    if isinstance(L, TapeLagrangian):
-        return TapeMechanics(L, list(consts))
+    if isinstance(L, CompactLagrangian):
+        return CompactMechanics(L, list(consts))
     return AutodiffMechanics(L, list(consts))
 
 
@@ -175,204 +185,210 @@ class AutodiffMechanics(eqx.Module):
         return both
 
 
-class TapeMechanics(eqx.Module):
-    """The quantities from the tapes in `consts[0]` (`TapeSet`), the parameters in
-    `consts[1:]`. Primal values only: the tape path runs eagerly, outside every
-    transformation."""
+class CompactMechanics(eqx.Module):
+    """The quantities from the compact tapes in `consts[0]` (`PeriodTapes`), the
+    parameters in `consts[1:]`. Each method works on one lane as its autodiff
+    twin does; under `vmap` every lane is one wide evaluation of the tape
+    (`_wide`), and a call at several points evaluates them together."""
 
-    L: TapeLagrangian = eqx.field(static=True)
+    L: CompactLagrangian = eqx.field(static=True)
     consts: list
 
     @property
-    def tapes(self) -> TapeSet:
+    def tapes(self) -> PeriodTapes:
         return self.consts[0]
 
     @property
     def params(self):
         return list(self.consts[1:])
 
-    def _inputs(self, points, directions=None):
-        """`(inputs, points)`: each point's inputs and the parameters (scalars), then
-        with `directions` theirs (the parameters' zero)."""
-        dtype = self.tapes.rest.values.dtype
-        cols = []
-        for i, p in enumerate(points):
-            col = [*p, *self.params]
-            if directions is not None:
-                col += [*directions[i], *([0.0] * len(self.params))]
-            cols.append(jnp.stack([jnp.asarray(u, dtype) for u in col]))
-        return jnp.stack(cols, axis=1)
+    def _points(self, t, q, qdot):
+        """The point tape's outputs at points (arrays of one shape): `(8, *shape)`."""
+        return _evaluate(self.tapes.point, self.params, [t, q, qdot])
 
-    def _evals(self, tape, points, directions=None):
-        """The tape's outputs at several points (lists of scalar inputs): shape
-        `(outputs, points)`; with `directions`, their coefficients of order 1 along
-        them. One interpreter for all points, and under `vmap` for all lanes
-        (`_wide`)."""
-        order = 0 if directions is None else 1
-        xs = self._inputs(points, directions)
-        return _wide(functools.partial(_series, order=order), tape, xs)[:, order]
+    def _at(self, q, qdot, t):
+        """At one point of `(1,)` coordinates: the 8 outputs."""
+        return self._points(t, q[0], qdot[0])
 
-    def _eval(self, tape, inputs, order=0, directions=None):
-        """The tape's outputs at one point (scalars), or with `directions` their
-        coefficients of order 1 along them."""
-        dirs = None if directions is None else [directions]
-        return self._evals(tape, [inputs], dirs)[:, 0]
+    def accelerations(self, q, qdot, t, fuse=None):
+        out = self._at(q, qdot, t)
+        return out[QDDOT][None], (out[MASS][None, None], out[OK] != 0)
 
-    def _point(self, q, qdot, t):
-        return self._eval(self.tapes.point, [q[0], qdot[0], t])
+    def jacobi(self, q, qdot, t):
+        out = self._at(q, qdot, t)
+        return out[ENERGY], out[SCALE]
+
+    def value(self, q, qdot, t):
+        return self._at(q, qdot, t)[VALUE]
+
+    def point(self, q, qdot, t, fuse=None):
+        out = self._at(q, qdot, t)
+        accel = (out[QDDOT][None], (out[MASS][None, None], out[OK] != 0))
+        return accel, (out[ENERGY], out[SCALE])
 
     def rest_and_end(self, q0, q_end, qdot_end, t_end):
         zero = jnp.zeros((), q0.dtype)
-        points = [[q0, zero, zero], [q_end, qdot_end, t_end]]
-        start, end = self._evals(self.tapes.point, points).T
-        qddot, M, ok, h, size, _ = end
-        return (start[3], start[4]), (
-            (qddot[None], (M[None, None], ok != 0)),
-            (h, size),
+        out = self._points(
+            jnp.stack([zero, t_end]),
+            jnp.stack([q0, q_end]),
+            jnp.stack([zero, qdot_end]),
         )
+        start, end = out[:, 0], out[:, 1]
+        accel = (end[QDDOT][None], (end[MASS][None, None], end[OK] != 0))
+        return (start[ENERGY], start[SCALE]), (accel, (end[ENERGY], end[SCALE]))
 
-    def end_accel_and_jerk(self, r, s, x, v):
-        """One Taylor step's first two coefficients of the acceleration."""
-        xs = self._inputs([[s, x, v, r.q0, r.Qs, r.tau]])
-        a, jerk = _wide(_accel_and_jerk, self.tapes.scaled, xs)[:, 0]
-        return a, jerk
-
-    def end_accels(self, r, points):
-        points = [[*p, r.q0, r.Qs, r.tau] for p in points]
-        return list(self._evals(self.tapes.scaled, points)[0])
-
-    def accelerations(self, q, qdot, t, fuse=None):
-        qddot, M, ok = self._point(q, qdot, t)[:3]
-        return qddot[None], (M[None, None], ok != 0)
-
-    def jacobi(self, q, qdot, t):
-        return tuple(self._point(q, qdot, t)[3:5])
-
-    def point(self, q, qdot, t, fuse=None):
-        qddot, M, ok, h, size, _ = self._point(q, qdot, t)
-        return (qddot[None], (M[None, None], ok != 0)), (h, size)
-
-    def value(self, q, qdot, t):
-        return self._point(q, qdot, t)[5]
-
-    def scaled_acceleration(self, fuse=None):
-        def accel_one(q0, Qs, tau, s, x, v):
-            return self._eval(self.tapes.scaled, [s, x, v, q0, Qs, tau])[0]
-
-        return accel_one
-
-    def lane_field_accel(self):
-        """Over lanes directly (no `vmap`): the lanes are the interpreter's width."""
-
-        def accel(q0, Qs, tau, s, x, v):
-            W = s.shape[0]
-            ins = [s, x, v, q0, Qs, tau]
-            ins += [jnp.broadcast_to(p, (W,)) for p in self.params]
-            return tape_series(self.tapes.scaled, ins, 0, trig=True)[0, 0]
-
-        return accel
-
-    def scalar_accel(self):
-        """The tape itself, with the parameters (read by `TapeTaylorStepper`)."""
-        return TapeAccel(self.tapes.scaled, self.params)
+    def _end(self, r, s, x, v):
+        """The point tape at a lane's `(s, x, v)` (its units, `r`: its `Release`),
+        as `AutodiffMechanics.end_accel` maps them."""
+        return self._points(r.tau * s, r.q0 + r.Qs * x, r.Qs / r.tau * v)
 
     def end_accel(self, r, s, x, v):
-        return self._eval(self.tapes.scaled, [s, x, v, r.q0, r.Qs, r.tau])[0]
+        return self._end(r, s, x, v)[QDDOT] * r.tau**2 / r.Qs
+
+    def end_accel_and_jerk(self, r, s, x, v):
+        r"""The acceleration in the lane's units and its derivative along the flow,
+        $\tau^3/Q$ times the jerk."""
+        out = self._end(r, s, x, v)
+        return out[QDDOT] * r.tau**2 / r.Qs, out[JERK] * r.tau**3 / r.Qs
 
     def end_jerk(self, r, s, x, v, a):
-        zero = jnp.zeros_like(s)
-        ins = [s, x, v, r.q0, r.Qs, r.tau]
-        dirs = [jnp.ones_like(s), v, a, zero, zero, zero]
-        return self._eval(self.tapes.scaled, ins, 1, dirs)[0]
+        return self._end(r, s, x, v)[JERK] * r.tau**3 / r.Qs
+
+    def end_accels(self, r, points):
+        s, x, v = (jnp.stack(p) for p in zip(*points))
+        expand = lambda u: u[None]
+        rows = jax.tree.map(expand, r)
+        accel = self._end(rows, s, x, v)[QDDOT] * rows.tau**2 / rows.Qs
+        return list(accel)
+
+    def _scaled(self, q0, Qs, tau, s, x, v):
+        """The step tape's acceleration (arrays of one shape)."""
+        out = _evaluate(self.tapes.step, self.params, [s, x, v], [q0, Qs, tau])
+        return out[1]
+
+    def scaled_acceleration(self, fuse=None):
+        return self._scaled
+
+    def lane_field_accel(self):
+        """Over lanes directly: the lanes are the evaluation's width."""
+        return self._scaled
+
+    def scalar_accel(self):
+        """The step tape with the parameters (read by `CompactTaylorStepper`)."""
+        return CompactAccel(self.tapes.step, self.params)
+
+    def _rest(self, qs):
+        """`(L, dL/dq)` at rest at `qs` (any shape)."""
+        zero = jnp.zeros_like(qs)
+        out = self._points(zero, qs, zero)
+        return out[VALUE], out[SLOPE]
 
     def rest(self, dtype):
-        return lambda q: self._eval(self.tapes.rest, [q])[0]
+        return lambda q: self._rest(q)[0]
 
     def rest_slope(self, dtype):
-        return lambda q: self._eval(self.tapes.rest, [q], 1, [jnp.ones_like(q)])[0]
+        return lambda q: self._rest(q)[1]
 
-    def _rest_lanes(self, qs, order):
-        """The rest tape over lanes, `qs` flattened into one width (several points
-        per lane: one interpreter, not one per point)."""
-        flat = jnp.reshape(qs, (-1,))
-        W = flat.shape[0]
-        q_in = flat if order == 0 else jnp.stack([flat, jnp.ones_like(flat)])
-        ins = [q_in] + [jnp.broadcast_to(p, (W,)) for p in self.params]
-        out = tape_series(self.tapes.rest, ins, order, trig=True)[0]
-        return [jnp.reshape(out[k], qs.shape) for k in range(order + 1)]
+    def rest_value_and_slope(self, dtype):
+        return self._rest
 
     def rest_lanes(self, dtype):
-        return lambda qs: self._rest_lanes(qs, 0)[0]
+        return lambda qs: self._rest(qs)[0]
 
     def rest_lanes_with_slope(self, dtype):
         def both(qs, k=0):
-            values, slopes = self._rest_lanes(qs, 1)
+            values, slopes = self._rest(qs)
             return values, (slopes if qs.ndim == 1 else slopes[k])
 
         return both
 
-    def rest_value_and_slope(self, dtype):
-        def both(q):
-            xs = self._inputs([[q]], [[jnp.ones_like(q)]])
-            out = _wide(functools.partial(_series, order=1), self.tapes.rest, xs)
-            return out[0, 0, 0], out[0, 1, 0]
 
-        return both
+class CompactAccel(eqx.Module):
+    """The step tape with the Lagrangian's parameters: a `LaneField`'s
+    `scalar_accel` in the compact tier (`CompactTaylorStepper` reads the tape)."""
 
-
-class TapeAccel(eqx.Module):
-    """The acceleration tape in lane units with its parameters: a `LaneField`'s
-    `scalar_accel` on the tape path (`TapeTaylorStepper` reads the tape)."""
-
-    tape: Tape
+    tape: CompactTape
     params: list
 
     def __call__(self, s, x, v, p):
-        ins = [s, x, v, *p, *self.params]
-        ins = [jnp.reshape(u, (1,)) for u in ins]
-        return tape_series(self.tape, ins, 0, trig=True)[0, 0, 0]
+        return _evaluate(self.tape, self.params, [s, x, v], list(p))[1]
 
 
-def _series(tape, xs, order):
-    """The series of the tape's outputs to `order` over lanes, shape `(outputs,
-    order + 1, W)`: `xs` of shape `(n, W)`, the inputs' values, then at order 1
-    their directions (`n` even)."""
-    if order == 0:
-        ins = list(xs)
-    else:
-        half = xs.shape[0] // 2
-        ins = [jnp.stack([u, d]) for u, d in zip(xs[:half], xs[half:])]
-    return tape_series(tape, ins, order, trig=True)
+def _evaluate(tape, params, ins, lane_params=()):
+    """The tape's outputs at points: `ins` its series inputs `(t, y...)`, then its
+    parameters, `lane_params` (arrays) and the Lagrangian's `params` (scalars),
+    all broadcast to one shape. Returns `(outputs, *shape)`."""
+    ins = list(ins) + list(lane_params) + list(params)
+    shape = jnp.broadcast_shapes(*(jnp.shape(u) for u in ins))
+    dtype = jnp.result_type(*ins)
+    xs = jnp.stack([jnp.broadcast_to(u, shape).astype(dtype).reshape(-1) for u in ins])
+    n_series = len(ins) - len(lane_params) - len(params)
+    out = _wide(tape, xs, n_series)
+    return out.reshape(out.shape[:1] + shape)
 
 
-def _accel_and_jerk(tape, xs):
-    """The acceleration tape's value and its derivative along the flow over lanes,
-    shape `(2, W)`: a Taylor step's coefficients of order 0 and 1 (`xs`: `(s, x, v,
-    *params)`, each of shape `(W,)`)."""
-    return tape_coefficients(tape, 2, xs[0], xs[1], xs[2], list(xs[3:]), trig=True)[2]
+def _values(tape, xs, n_series):
+    """`compact_values` over the lanes of `xs` `(inputs, W)` (the series inputs,
+    then the parameters): `(outputs, W)`."""
+    return compact_values(
+        tape, xs[0], list(xs[1:n_series]), list(xs[n_series:]), trig=True
+    )
 
 
-def _wide(fn, tape, xs):
-    """`fn(tape, xs)` (`xs` of shape `(n, W)`, outputs with the lanes last), which
-    under `vmap` evaluates every lane in one interpreter of width lanes x W: the
-    period program evaluates L lane by lane in several places (the release, the end
-    of a leg, ...), and a vmapped interpreter compiles to several times the code of
-    a wide one."""
+def _wide(tape, xs, n_series):
+    """`_values`, which under `vmap` evaluates every lane in one call of width
+    lanes x W (the period program evaluates L lane by lane in several places; a
+    vmapped evaluation would carry the lanes as a leading axis of every array,
+    each lane a strided access), and whose derivatives are those of `_values`
+    (forward mode: the periods' tangents), likewise wide under `vmap`."""
 
-    @jax.custom_batching.custom_vmap
+    def plain(tape, xs):
+        return _values(tape, xs, n_series)
+
+    def tangent(tape, xs, dxs):
+        return jax.jvp(lambda xs: plain(tape, xs), (xs,), (dxs,))
+
+    # (The tape an argument, not a closure: under a caller's `jit` it is a tracer.
+    # It is a constant of the program: its tangent is not read.)
+    @jax.custom_jvp
     def run(tape, xs):
-        return fn(tape, xs)
+        return _lanes(plain)(tape, xs)
 
-    @run.def_vmap
-    def rule(axis_size, in_batched, tape, xs):
-        if not in_batched[1]:
-            xs = jnp.broadcast_to(xs, (axis_size, *xs.shape))
-        if any(jax.tree.leaves(in_batched[0])):  # (a batch of tapes: as it comes)
-            axes = (jax.tree.map(lambda b: 0 if b else None, in_batched[0]), 0)
-            return jax.vmap(run, in_axes=axes)(tape, xs), True
-        n, W = xs.shape[1:]
-        out = _wide(fn, tape, jnp.moveaxis(xs, 0, 1).reshape(n, axis_size * W))
-        out = out.reshape(*out.shape[:-1], axis_size, W)
-        return jnp.moveaxis(out, -2, 0), True
+    @run.defjvp
+    def _jvp(primals, tangents):
+        tape, xs = primals
+        return _lanes(tangent)(tape, xs, tangents[1])
 
     return run(tape, xs)
+
+
+def _lanes(fn):
+    """`fn(tape, *xs)` (arrays whose last axis is the lanes; outputs likewise), whose
+    `vmap` folds the batch into the lanes: one call, wider. A batch of tapes runs
+    as plain `vmap`."""
+
+    @jax.custom_batching.custom_vmap
+    def run(tape, *xs):
+        return fn(tape, *xs)
+
+    @run.def_vmap
+    def rule(axis_size, in_batched, tape, *xs):
+        if any(jax.tree.leaves(in_batched[0])):  # (a batch of tapes: as it comes)
+            axes = (jax.tree.map(lambda b: 0 if b else None, in_batched[0]),)
+            axes += tuple(0 if b else None for b in in_batched[1:])
+            out = jax.vmap(run, in_axes=axes)(tape, *xs)
+            return out, jax.tree.map(lambda _: True, out)
+        wide = []
+        for x, batched in zip(xs, in_batched[1:]):
+            if not batched:
+                x = jnp.broadcast_to(x, (axis_size, *x.shape))
+            wide.append(jnp.moveaxis(x, 0, -2).reshape(*x.shape[1:-1], -1))
+        out = _lanes(fn)(tape, *wide)
+
+        def back(o):
+            return jnp.moveaxis(o.reshape(*o.shape[:-1], axis_size, -1), -2, 0)
+
+        out = jax.tree.map(back, out)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return run

@@ -54,7 +54,7 @@ from .methods import Method
 from .options import check_options
 from .reuse import canonical_inputs
 from .solver import stepper_of
-from .sweep import _sweep_call
+from .sweep import _eager, _sweep_call
 
 
 class _Lane(eqx.Module):
@@ -220,7 +220,13 @@ def _one_lane(L_c, consts, q0, stepper, opts, estimate):
     device = (jax.devices()[0],)
     args = (consts, opts.rtol, opts.atol, opts.t_max, opts.energy_tol)
     # As `sweep_periods`: one compiled call, whose forward-mode derivative is a
-    # compiled program too, reused by every later eager `jax.grad`.
+    # compiled program too, reused by every later eager `jax.grad`; eagerly through
+    # the tiers and the library's disk cache of executables, and on the host
+    # around it (op-by-op jnp compiles each operation on its first call).
     order = np.zeros((1,), np.int32)
+    if is_concrete(q0, args):
+        out, _ = _eager(L_c, cfg, device, np.reshape(np.asarray(q0), (1,)), order, args)
+        first = lambda x: jax.device_put(np.asarray(x)[0])
+        return first(out.periods), first(out.status), first(out.estimate)
     out, _ = _sweep_call(L_c, cfg, device, q0[None], order, *args)
     return out.periods[0], out.status[0], out.estimate[0]

@@ -1,6 +1,7 @@
 r"""`sweep_periods`: periods of many release points through the period kernel, one
 compiled call per sweep, in input order."""
 
+import dataclasses
 import functools
 from collections.abc import Callable
 
@@ -23,13 +24,17 @@ from .._jaxpr.canonical import canonical_lagrangian
 from .._jaxpr.fusion import elemental_options
 from .._results import status_message, SUCCESS
 from .._taylor.solver import Taylor
+from . import tier
 from .autodiff import forward_jacobian, forward_mode, periods_diff, tangents_of
 from .device import Periods
 from .methods import Method
 from .options import check_options
 from .reuse import resolved_solver
 from .solver import stepper_of
-from .tier import choose
+
+
+# Lanes per device on a CPU by default (also `lagrax sweep`'s: they share programs).
+CPU_CHUNK = 256
 
 
 def _lane_order(q0):
@@ -219,9 +224,14 @@ def sweep_periods(
         L, q0.dtype, solver, rtol, atol, t_max, energy_tol, max_steps, method
     )
     devices = check_devices(jax.devices() if devices is None else devices)
-    per_device = -(-q0.shape[0] // len(devices))
+    per_device = -(-size_class(q0.shape[0]) // len(devices))
     chunk_size = lane_count(
-        chunk_size, "chunk_size", devices, per_device, cpu=256, accelerator=1 << 18
+        chunk_size,
+        "chunk_size",
+        devices,
+        per_device,
+        cpu=CPU_CHUNK,
+        accelerator=1 << 18,
     )
     if progress is not None:
         check_callable(progress, "progress", "a function progress(done, total)")
@@ -230,54 +240,32 @@ def sweep_periods(
     # program compiled for the first.)
     L_c, consts = canonical_lagrangian(L, dtype)
     n = q0.shape[0]
-    # The first sweeps of a Lagrangian on the tape path (L as data: no compile per
-    # L), until the specialized program would repay its compile (`tier.py`).
-    static = (opts.method, chunk_size, opts.max_steps, bool(error_estimate), devices)
-    tape = choose(L_c, consts, solver, (static, solver), q0, n)
-    taped = tape is not None
-    if taped:
-        L_run, consts, stepper, solver = tape
-    else:
-        L_run, solver = L_c, resolved_solver(L_c, consts, solver, dtype)
-        stepper = stepper_of(solver)
-    cfg = Method(stepper, opts.method, chunk_size, opts.max_steps, bool(error_estimate))
+    solver = resolved_solver(L_c, consts, solver, dtype)
+    cfg = Method(
+        stepper_of(solver),
+        opts.method,
+        chunk_size,
+        opts.max_steps,
+        bool(error_estimate),
+    )
     args = (consts, opts.rtol, opts.atol, opts.t_max, opts.energy_tol)
 
     def run(q, order):
-        if taped:
-            # (With XLA's elemental CPU emitters: the tape path's program, an
-            # interpreter in several places, compiles in about two thirds of the
-            # time and runs about as fast.)
-            elemental = devices[0].platform == "cpu"
-            jitted = _sweep_jit(L_run, cfg, devices, elemental)
-            static = (L_run, cfg, devices, elemental)
-            return executables.call(jitted, static, _OUT_TREE, q, order, *args)
         # Nothing traced, nothing to differentiate: the compiled call without the
-        # derivative rule's wrapper (whose eager dispatch costs ~0.4 ms a call).
-        # (Through the library's disk cache of executables: a later process
-        # loads this program instead of compiling it.)
+        # derivative rule's wrapper (whose eager dispatch costs ~0.4 ms a call),
+        # through the tiers and the library's disk cache of executables.
         if is_concrete(q, args):
-            jitted = _sweep_jit(L_run, cfg, devices)
-            origin = (_sweep_jit, L_run, cfg, devices)
-            return executables.cached_call(
-                jitted, None, q, order, *args, origin=origin, out_tree=_OUT_TREE
-            )
-        return _sweep_call(L_run, cfg, devices, q, order, *args)
+            return _eager(L_c, cfg, devices, q, order, args)
+        return _sweep_call(L_c, cfg, devices, q, order, *args)
 
     order = _lane_order(q0) if sort else np.arange(n, dtype=np.int32)
-    if taped:
-        # In pieces of one size, so that one executable serves every number of
-        # amplitudes (its key holds the shapes). The last piece is padded with
-        # NaN release points: they end at their release (status `invalid`) and
-        # take no step, only their share of the work outside the loop.
-        nan = np.full((), np.nan, dtype)
-        piece = tape_piece(chunk_size, devices)
-        out, useful = _in_pieces(run, q0, order, piece, progress, pad=nan)
-    elif progress is None:
-        out, useful = run(q0, order)
-    else:
+    if progress is not None:
         size = max(chunk_size * len(devices) * 4, -(-n // 20))
         out, useful = _in_pieces(run, q0, order, size, progress)
+    elif is_concrete(q0, args) and size_class(n) > n:
+        out, useful = _padded(run, q0, order, size_class(n))
+    else:
+        out, useful = run(q0, order)
     return SweepResult(
         periods=out.periods,
         status=out.status,
@@ -289,6 +277,69 @@ def sweep_periods(
         error_estimate=out.estimate if error_estimate else None,
         solver=solver,
     )
+
+
+def size_class(n: int) -> int:
+    """The amplitudes a sweep of `n` is compiled for: the smallest of 8, 12, 16,
+    24, 32, ... (powers of two and one and a half times them) that holds `n`, so
+    that one program serves a range of counts (the extra lanes padded with NaN
+    release points, which end at their release)."""
+    k = max(3, (max(n, 1) - 1).bit_length())  # (2^k >= n)
+    three_quarters = 3 << (k - 2)
+    return three_quarters if three_quarters >= max(n, 8) else 1 << k
+
+
+def _padded(run, q0, order, size) -> tuple[Periods, Array]:
+    """`run` of the sweep padded to `size` amplitudes with NaN release points, run
+    last (they end at their release, status `invalid`, and take no step), the
+    results of the first `q0.shape[0]` back (NumPy, `jax.device_put`: op-by-op jnp
+    compiles each operation on its first call, ~20 ms apiece)."""
+    n = q0.shape[0]
+    q = np.concatenate([np.asarray(q0), np.full((size - n,), np.nan, q0.dtype)])
+    order = np.concatenate([order, np.arange(n, size, dtype=np.int32)])
+    out, _ = run(q, order)
+    cut = lambda x: jax.device_put(np.asarray(x)[:n])
+    steps = np.asarray(out.steps)[:n]
+    out = Periods(
+        cut(out.periods),
+        cut(out.status),
+        jax.device_put(steps),
+        out.executed,
+        cut(out.estimate),
+    )
+    return out, jax.device_put(steps.sum())
+
+
+def _eager(L_c, cfg, devices, q, order, args):
+    """The compiled sweep of concrete inputs: the specialized program where it is
+    compiled or on disk, or where the compact tier does not apply or its work
+    would repay the specialized compile; else the compact program, where its
+    executable is at hand (`tier.py`)."""
+    jitted = _sweep_jit(L_c, cfg, devices)
+    origin = (_sweep_jit, L_c, cfg, devices)
+    call = (jitted, None, q, order, *args)
+    specialized = lambda: executables.cached_call(
+        *call, origin=origin, out_tree=_OUT_TREE
+    )
+    n = q.shape[0]
+    kind = "sweep" if n > 1 else "period"
+    plan = None
+    if tier.always() or not executables.available(*call, origin=origin):
+        plan = tier.plan(L_c, args[0], cfg.stepper, (cfg, devices), n, q.dtype, kind)
+    if plan is None:
+        return specialized()
+    m = dataclasses.replace(cfg, stepper=plan.stepper)
+    # (With XLA's elemental CPU emitters: the compact program, loops over the
+    # tape's blocks, compiles faster.)
+    elemental = devices[0].platform == "cpu"
+    compact = tier.Compact(
+        plan,
+        _sweep_jit(plan.L, m, devices, elemental),
+        (plan.L, m, devices, elemental),
+        _OUT_TREE,
+        (q, order, plan.consts, *args[1:]),
+    )
+    return compact.run(kind, specialized)
 
 
 def _in_pieces(run, q0, order, size, progress, pad=None) -> tuple[Periods, Array]:
@@ -326,14 +377,6 @@ def _in_pieces(run, q0, order, size, progress, pad=None) -> tuple[Periods, Array
     return out, device(xp.sum(steps))
 
 
-def tape_piece(chunk_size, devices) -> int:
-    """Amplitudes per call on the tape path (`_in_pieces`), the shape of its one
-    executable: 1024 (one pinned CPU core, pendulum, defaults: 4096 amplitudes in
-    four calls cost ~10% more than in one, 100 amplitudes padded to 1024 cost 0.12 s
-    against 0.30 s padded to 4096), or two rounds of every lane."""
-    return max(1024, 2 * chunk_size * len(devices))
-
-
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
 def _sweep_call(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol):
     """`periods_diff` as one compiled call: one dispatch instead of a dozen (their
@@ -354,22 +397,49 @@ def _sweep_call_jvp(L, m, devices, primals, tangents):
     run = lambda q0, consts: jitted(q0, order, consts, *rest)
     jacobian = None
     if is_concrete(primals):
-        # The forward passes as one program of their own, through the library's
-        # disk cache of executables (`cached_call`): a later process loads it.
-        def jacobian(q0, consts, with_q, wanted):
-            jac = _jacobian_jit(L, m, devices, elemental, with_q, wanted)
-            options = elemental_options() if elemental else None
-            origin = (_jacobian_jit, L, m, devices, elemental, with_q, wanted)
-            return executables.cached_call(
-                jac, options, q0, order, consts, *rest, origin=origin,
-                out_tree=_JACOBIAN_OUT_TREE,
-            )  # fmt: skip
+        # The forward passes as one program of their own (`_jacobian`).
+        jacobian = functools.partial(_jacobian, L, m, devices, elemental, order, rest)
 
     (out, useful), dT = forward_mode(
         run, q0, consts, tangents[0], tangents[2], jacobian
     )
     no_tangent = np.zeros(np.shape(useful), jax.dtypes.float0)
     return (out, useful), (tangents_of(out, dT), no_tangent)
+
+
+def _jacobian(L, m, devices, elemental, order, rest, q0, consts, with_q, wanted):
+    """`forward_jacobian` of the sweep (`_sweep_call_jvp`), compiled: the
+    specialized program through the library's disk cache of executables
+    (`cached_call`: a later process loads it) where it is compiled or on disk, or
+    where the compact tier does not apply or its work would repay the specialized
+    compile (`tier.py`); else the compact program's."""
+    jac = _jacobian_jit(L, m, devices, elemental, with_q, wanted)
+    options = elemental_options() if elemental else None
+    origin = (_jacobian_jit, L, m, devices, elemental, with_q, wanted)
+    call = (jac, options, q0, order, consts, *rest)
+    specialized = lambda: executables.cached_call(
+        *call, origin=origin, out_tree=_JACOBIAN_OUT_TREE
+    )
+    n = q0.shape[0]
+    plan = None
+    if tier.always() or not executables.available(*call, origin=origin):
+        plan = tier.plan(L, consts, m.stepper, (m, devices), n, q0.dtype, "jacobian")
+    if plan is None:
+        return specialized()
+    m_t = dataclasses.replace(m, stepper=plan.stepper)
+    # (The tapes are constants; the parameters padded beyond the Lagrangian's are
+    # not differentiated: the same directions.)
+    tapes = len(jax.tree.leaves(plan.consts[0]))
+    pad = len(plan.consts) - 1 - len(wanted)
+    wanted_t = (False,) * tapes + tuple(wanted) + (False,) * pad
+    compact = tier.Compact(
+        plan,
+        _jacobian_jit(plan.L, m_t, devices, elemental, with_q, wanted_t),
+        (plan.L, m_t, devices, elemental, with_q, wanted_t),
+        _JACOBIAN_OUT_TREE,
+        (q0, order, plan.consts, *rest),
+    )
+    return compact.run("jacobian", specialized)
 
 
 @functools.lru_cache(maxsize=64)

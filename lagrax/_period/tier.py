@@ -1,55 +1,82 @@
-r"""Which program sweeps a Lagrangian first: the tape path, or the specialized one.
+r"""Which program sweeps a Lagrangian: the compact one, or the specialized one.
 
 The specialized program (L's equations compiled in) runs fastest but costs seconds
-of XLA compile for each new Lagrangian. The tape path (`mechanics.TapeMechanics`,
-`lagrax._stepper.tape.TapeTaylorStepper`) runs the same period program with $L$ as
-data: its executable is the same for every Lagrangian whose tapes fit its sizes,
-compiled once per machine and kept on disk (`lagrax._cache.executables`), so a new
-$L$ costs the tracing of its tapes. It runs slower per step (an interpreter over
-the tape's nodes), so it is taken, like a JIT's first tier, for eager sweeps until the
-amplitudes swept with one Lagrangian and configuration would repay the specialized
-compile (`SPECIALIZE_AFTER`), and then the specialized program takes over.
+of XLA compile for each new Lagrangian. The compact program runs the same period
+program with $L$ as data (`mechanics.CompactMechanics`,
+`lagrax._stepper.compact.CompactTaylorStepper`: two compact tapes,
+`lagrax._taylor.compact`): its executable is the same for every Lagrangian whose
+tapes are of one size class, compiled once per machine and kept on disk
+(`lagrax._cache.executables.call`), so that a new $L$ costs the tracing of its
+tapes, the load and the run. It runs several times slower per step, so it is
+taken, like a JIT's first tier, for a Lagrangian's first eager sweeps, until the
+time spent there with one Lagrangian and configuration, with the sweep at hand,
+would reach the specialized compile's (a ski rental: the work repays the
+compile), and then the specialized program takes over. A sweep whose specialized
+program is compiled, or on disk, takes it at once.
 
-Taken only where nothing is traced (eager calls: under `jit`, `grad` or `vmap` the
-program being compiled is the caller's), the stepper is the Taylor step, and the
-Lagrangian's tapes can be built (scalar parameters, primitives with an opcode).
+Taken only where nothing is traced (eager calls, and the forward passes of an
+eager `jax.grad`: under a caller's `jit` the program being compiled is the
+caller's), the stepper is the Taylor step, the executables are kept on disk (one
+process, a CPU), and the Lagrangian's tapes can be built (scalar parameters,
+primitives with a compact opcode). Its results agree with the specialized
+program's to rounding, with the same statuses and error estimates.
 
-Taken only with `LAGRAX_TAPE_TIER=1` (`0` or unset: never): each place the period
-program evaluates $L$ inlines an interpreter (twelve: the step's coefficients, its
-end and its event in the loop; the release; three at the end of a leg; four in the
-far turning point's search; the mass check), each one interpreter over all the lanes
-and points it needs, and XLA compiles each on its own. Its one compile per machine
-(and tracing, three times the specialized program's) costs more than a Lagrangian's
-specialized first sweep, and it runs tens of times slower per step
-(`benchmarks/first_result.py` measures both). The sweep runs on it in pieces of one
-size (`sweep.tape_piece`), so that one executable serves every number of amplitudes.
-Its results agree with the specialized program's to rounding, with the same
-statuses.
+`LAGRAX_COMPACT`: "1" or unset (the tiers above), "0" (the specialized program
+only), "2" (the compact one wherever it applies: benchmarks, tests).
 """
 
 import collections
 import os
+import time
+import warnings
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from .._stepper.tape import TapeTaylorStepper
-from .._taylor.solver import Taylor
-from .._taylor.tape import build_tape
-from .mechanics import AutodiffMechanics, TapeLagrangian, TapeSet
+from .._cache import executables
+from .._jaxpr import scalarize as _scalarize
+from .._jaxpr.fusion import fusion_off
+from .._stepper.compact import CompactTaylorStepper
+from .._stepper.taylor import TaylorStepper
+from .._taylor import compact
+from .._taylor.system import _eval_entries, _SystemProgram
+from .._trajectory.batch import _compact_mode
+from .mechanics import AutodiffMechanics, CompactLagrangian, PeriodTapes
 
 
-# Amplitudes swept with one canonical Lagrangian and configuration before the
-# specialized program is compiled (its compile is repaid past about this many).
-SPECIALIZE_AFTER = 200_000
-# Smallest tape sizes `(slots, nodes)`: most small Lagrangians share one executable.
-_MIN_SIZE = (128, 64)
+# Seconds the specialized program takes to trace and compile: a sweep's, one
+# lane's (`lagrax.period`), and a sweep's forward-mode derivative's (one pinned
+# CPU core, 1-DOF Lagrangians at order 20; `benchmarks/first_result.py`).
+COMPILE_S = {"sweep": 10.0, "period": 3.0, "jacobian": 20.0}
+# Seconds per amplitude on the compact program before one is measured here.
+_RATE_PRIOR = 1e-4
 
-# Tapes per (canonical L, dtype): a `(TapeLagrangian, TapeSet)` or None (no tape).
+# Tapes per (canonical L, dtype): `(CompactLagrangian, PeriodTapes)` or None.
 _TAPES: collections.OrderedDict = collections.OrderedDict()
 _MAX_TAPES = 256
-# Amplitudes swept on the tape path per (canonical L, configuration).
-_SWEPT: collections.Counter = collections.Counter()
+# Seconds spent on the compact program per (canonical L, configuration), and the
+# last measured seconds per amplitude per compact program.
+_SPENT: collections.Counter = collections.Counter()
+_RATE: dict = {}
+
+# The smallest sizes of the tapes (`compact.build`'s `size`), so that most
+# Lagrangians of one coordinate share one executable: the families of every
+# period program, and sizes that hold the natural systems of `lagrax.systems`
+# (the pendulum, the cycloid, the asymmetric well, rectilinear motion).
+_FAMILIES = (compact.AFFINE, compact.RARE, compact.LOGIC, compact.SINCOS)
+_SIZE = {
+    "step": dict(
+        families=_FAMILIES, S=128, NB0=64, H=32, NB=32, B1cau=8, B1slin=8,
+        B1dlin=16, B00=16, B01=32, B02=8, B03=2,
+    ),
+    "point": dict(
+        families=_FAMILIES, S=256, NB0=64, H=64, NB=64, B1cau=32, B1slin=16,
+        B1dlin=16, B00=32, B01=32, B02=4, B03=2,
+    ),
+}  # fmt: skip
+# Parameter inputs per tape: a multiple of this (the unused ones zero).
+_PARAMS = 8
 
 
 def _concrete(tree) -> bool:
@@ -57,8 +84,9 @@ def _concrete(tree) -> bool:
 
 
 def tapes_of(L_c, consts, dtype):
-    """`(TapeLagrangian, TapeSet)` of the canonical `L_c`, or None where it has no
-    tape; built once per canonical function (the parameters are tape inputs)."""
+    """`(CompactLagrangian, PeriodTapes)` of the canonical `L_c`, or None where it
+    has no compact tape; built once per canonical function (its constants are the
+    tapes' parameters)."""
     key = (L_c, np.dtype(dtype).name)
     if key in _TAPES:
         _TAPES.move_to_end(key)
@@ -73,76 +101,191 @@ def tapes_of(L_c, consts, dtype):
     return found
 
 
-def _params(n):
-    """Parameter inputs per tape: a multiple of 8 at least `n` (the unused ones
-    zero), so that Lagrangians with a few more or fewer constants share one
-    executable."""
-    return 8 * max(1, -(-n // 8))
+def n_params(n):
+    """Parameter inputs for `n` constants: a multiple of `_PARAMS`."""
+    return _PARAMS * max(1, -(-n // _PARAMS))
+
+
+def _tape(fn, n_series, n_params, dtype, size):
+    """The compact tape of `fn(*scalars)`: its first `n_series` inputs `(t, y...)`,
+    then `n_params` parameters; its outputs a tuple of scalars. Its program is
+    built entry by entry, as `System`'s (a Lagrangian of particles computes with
+    their position vectors)."""
+    scalar = jax.ShapeDtypeStruct((), dtype)
+    specs = [scalar] * (n_series + n_params)
+    with fusion_off():  # (an identity for XLA; no opcode for it)
+        closed = jax.make_jaxpr(fn)(*specs)
+
+        def entries(*args):
+            args = [_scalarize._filled((), [a]) for a in args]
+            outs = _eval_entries(closed.jaxpr, closed.consts, args)
+            return tuple(jnp.asarray(o.reshape(()).item(), dtype) for o in outs)
+
+        closed = jax.make_jaxpr(entries)(*specs)
+    prog = _SystemProgram(closed, n_series, n_params)
+    return compact.build(prog, prog.inputs, prog.params, prog.outs, dtype, size=size)
 
 
 def _build(L_c, consts, dtype):
-    P = _params(len(consts))
     if any(np.size(c) != 1 for c in consts):
-        raise NotImplementedError("a tape takes scalar parameters")
+        raise NotImplementedError("a compact tape takes scalar parameters")
+    P = n_params(len(consts))
     shaped = lambda params: [
-        jax.numpy.reshape(p, np.shape(c)) for p, c in zip(params, consts)
+        jnp.reshape(p, np.shape(c)) for p, c in zip(params, consts)
     ]
     mech = lambda params: AutodiffMechanics(L_c, shaped(params))
-    one = lambda u: jax.numpy.reshape(u, (1,))
+    one = lambda u: jnp.reshape(u, (1,))
 
-    def scaled(s, x, v, q0, Qs, tau, *params):
-        return mech(params).scaled_acceleration()(q0, Qs, tau, s, x, v)
+    def step(s, x, v, q0, Qs, tau, *params):
+        accel = mech(params).scaled_acceleration(fuse=False)
+        return v, accel(q0, Qs, tau, s, x, v)
 
-    def point(q, qd, t, *params):
+    def point(t, q, qdot, *params):
         m = mech(params)
-        qddot, (M, ok) = m.accelerations(one(q), one(qd), t, fuse=False)
-        h, size = m.jacobi(one(q), one(qd), t)
-        return qddot[0], M[0, 0], ok, h, size, m.value(one(q), one(qd), t)
 
-    def rest(q, *params):
-        m = mech(params)
-        z = jax.numpy.zeros((1,), dtype)
-        return m.value(one(q), z, jax.numpy.zeros((), dtype))
+        def accel(q, qdot, t):
+            qddot, (M, ok) = m.accelerations(one(q), one(qdot), t, fuse=False)
+            return qddot[0], (M[0, 0], ok)
 
-    tapes = TapeSet(
-        scaled=build_tape(scaled, 6 + P, dtype, (0, 1, 2), _MIN_SIZE),
-        point=build_tape(point, 3 + P, dtype, (0, 1, 2), _MIN_SIZE),
-        rest=build_tape(rest, 1 + P, dtype, (0,), _MIN_SIZE),
+        qddot, (M, ok) = accel(q, qdot, t)
+        # The jerk along the flow, d/dt q̈ at (q̇, q̈, 1).
+        tangents = (qdot, qddot, jnp.ones_like(t))
+        _, jerk = jax.jvp(lambda *a: accel(*a)[0], (q, qdot, t), tangents)
+        h, size = m.jacobi(one(q), one(qdot), t)
+        value = lambda q: m.value(one(q), one(qdot), t)
+        L, slope = jax.value_and_grad(value)(q)
+        return qddot, M, ok.astype(q.dtype), h, size, L, slope, jerk
+
+    tapes = PeriodTapes(
+        step=_tape(step, 3, 3 + P, dtype, _SIZE["step"]),
+        point=_tape(point, 3, P, dtype, _SIZE["point"]),
     )
-    sizes = (tapes.scaled.size, tapes.point.size, tapes.rest.size)
-    return TapeLagrangian(sizes, P), tapes
+    return CompactLagrangian((tapes.step.size, tapes.point.size), P), tapes
 
 
-def enabled() -> bool:
-    """`LAGRAX_TAPE_TIER`: "1" (on), "0" or unset (off)."""
-    value = os.environ.get("LAGRAX_TAPE_TIER", "0").strip() or "0"
-    if value not in ("0", "1"):
-        raise ValueError(
-            f"The environment variable LAGRAX_TAPE_TIER must be 0 or 1; got {value!r}."
-        )
-    return value == "1"
+def applies(stepper) -> bool:
+    """Whether the compact tier may be taken at all: a Taylor step, executables
+    kept on disk (one process, a CPU), unless `LAGRAX_COMPACT=0`."""
+    return (
+        type(stepper) is TaylorStepper
+        and _compact_mode() != "0"
+        and executables._applies()
+        and executables.cache_dir() is not None
+    )
 
 
-def choose(L_c, consts, solver, key, q0, n):
-    """`(L, consts, stepper, solver)` of the tape path where this sweep takes it
-    (module docstring), else None. `key`: the configuration, for counting the
-    amplitudes swept with it. On the tape path a `Taylor` solver steps with Taylor
-    wherever every primitive has a recurrence (the fallback, for programs too large
-    to unroll in the specialized step, does not concern the interpreter)."""
-    if not enabled():
+def always() -> bool:
+    """`LAGRAX_COMPACT=2`: the compact program wherever it applies."""
+    return _compact_mode() == "2"
+
+
+class Plan:
+    """How a compact call runs: its Lagrangian, constants and stepper; `record`
+    after it ran (the time spent, for the ski rental)."""
+
+    def __init__(self, L_t, consts, stepper, count):
+        self.L, self.consts, self.stepper, self._count = L_t, consts, stepper, count
+        self._start = time.perf_counter()
+
+    def start(self):
+        self._start = time.perf_counter()
+
+    def record(self, kind, n):
+        """The seconds since `start` as spent with this Lagrangian and
+        configuration, and per amplitude of `kind` (`COMPILE_S`)."""
+        spent = time.perf_counter() - self._start
+        _SPENT[self._count] += spent
+        _RATE[kind] = spent / max(n, 1)
+
+
+def plan(L_c, consts, stepper, key, n, dtype, kind="sweep"):
+    """The compact tier's `Plan` for this call, or None where the specialized
+    program runs it (module docstring). `key`: the configuration, for the time
+    spent with it; `n`: the amplitudes of the call; `kind`: which specialized
+    compile it saves (`COMPILE_S`), whose last measured time per amplitude
+    predicts this call's."""
+    if not applies(stepper) or not _concrete(consts):
         return None
-    if not isinstance(solver, Taylor) or not _concrete((q0, consts)):
-        return None
-    count = (L_c, key)
-    if _SWEPT[count] + n > SPECIALIZE_AFTER:
-        return None
-    found = tapes_of(L_c, consts, q0.dtype)
+    count = (L_c, key, kind)
+    if _compact_mode() != "2":
+        predicted = n * _RATE.get(kind, _RATE_PRIOR)
+        if _SPENT[count] + predicted >= COMPILE_S[kind]:
+            return None
+    found = tapes_of(L_c, consts, dtype)
     if found is None:
         return None
-    _SWEPT[count] += n
     L_t, tapes = found
-    params = [np.asarray(c).reshape(()) for c in consts]
-    params += [np.zeros((), q0.dtype)] * (L_t.n_params - len(params))
-    taped = TapeTaylorStepper(order=solver.order, max_step=solver.max_step)
-    plain = Taylor(order=solver.order, max_step=solver.max_step)
-    return L_t, [tapes, *params], taped, plain
+    dtype = tapes.step.values.dtype
+    params = [np.asarray(c, dtype).reshape(()) for c in consts]
+    params += [np.zeros((), dtype)] * (L_t.n_params - len(params))
+    taped = CompactTaylorStepper(order=stepper.order, max_step=stepper.max_step)
+    return Plan(L_t, [tapes, *params], taped, count)
+
+
+# Specialized programs compiled in this process for a Lagrangian new to it, per
+# kind: the second such Lagrangian compiles the compact program instead.
+_COMPILED: collections.Counter = collections.Counter()
+_NOTIFIED: set = set()
+
+
+class Compact:
+    """One call of the compact program (`Plan`): `jitted` its function, `static`
+    what besides the arguments' shapes determines it (`executables.call`)."""
+
+    def __init__(self, plan, jitted, static, out_tree, args):
+        self.plan, self.jitted, self.static = plan, jitted, static
+        self.out_tree, self.args = out_tree, args
+
+    def ready(self) -> bool:
+        """Whether the executable is compiled in this process or on disk."""
+        # (The cache's own tables and paths: `executables.call` has no
+        # `available` of its own yet.)
+        key = executables._key(self.static, self.args)
+        path = executables._path(key)
+        return key in executables._LOADED or (path is not None and os.path.exists(path))
+
+    def run(self, kind, specialized):
+        """The compact program where its executable is at hand, or where the
+        process compiled a specialized program of this kind for another
+        Lagrangian already (new Lagrangians come often: the compact one, compiled
+        once per machine, serves them all) or `always()`; else `specialized()`
+        (today's first call)."""
+        ready = self.ready()
+        if not (ready or always() or _COMPILED[kind]):
+            _COMPILED[kind] += 1
+            return specialized()
+        if not ready:
+            _notify(kind)
+        self.plan.start()
+        out = executables.call(self.jitted, self.static, self.out_tree, *self.args)
+        jax.block_until_ready(out)
+        self.plan.record(kind, self.args[0].shape[0])
+        return out
+
+
+def _notify(kind):
+    """One line, once per kind, before the compact program's compile."""
+    if kind in _NOTIFIED:
+        return
+    _NOTIFIED.add(kind)
+    what = {"jacobian": "derivative of a period sweep"}.get(kind, "period sweep")
+    warnings.warn(
+        f"lagrax: compiling the {what} for Lagrangians as data, once per machine "
+        "(tens of seconds); later processes load it, and a new Lagrangian then "
+        "runs without compiling.",
+        stacklevel=_caller_level(),
+    )
+
+
+def _caller_level() -> int:
+    """The `stacklevel` of the first frame outside lagrax and JAX (the user's
+    call, however deep the library's and JAX's transformations are)."""
+    import sys
+
+    level, frame = 1, sys._getframe(1)
+    while frame is not None:
+        module = frame.f_globals.get("__name__", "")
+        if not module.startswith(("lagrax.", "jax.", "jax")):
+            return level
+        level, frame = level + 1, frame.f_back
+    return 1

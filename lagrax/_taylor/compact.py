@@ -158,7 +158,8 @@ _ALIAS = frozenset(
         "copy", "copy_p", "convert_element_type", "reshape", "squeeze",
         "expand_dims", "broadcast_in_dim", "transpose", "slice", "concatenate",
         "reduce_sum", "reduce_max", "reduce_min", "stop_gradient",
-        "reduce_precision", "real", "rev", "optimization_barrier",
+        "reduce_precision", "real", "rev", "optimization_barrier", "stack",
+        "dynamic_slice",
     }
 )  # fmt: skip
 # Primitives that are an opcode under their own name.
@@ -415,6 +416,12 @@ class _Builder:
             self.emit("pow", [ins[0], self.const(1.0 / 3.0)], out)
         elif kind == "integer_pow" and node.params["y"] == 0:
             self.emit("copy", [self.one], out, series=False)
+        elif kind in ("integer_pow", "square"):
+            # (Of a series, `_Program` expands it into products: here the operand
+            # is fixed along the step, e.g. a per-lane parameter.)
+            self.power(ins[0], 2 if kind == "square" else node.params["y"], out)
+        elif kind in ("sin", "cos", "sinh", "cosh"):  # (of a fixed operand)
+            self.emit(kind, [ins[0], None], out, series=False)
         elif kind in ("tan", "tanh"):
             w = self.new()
             self.emit(kind, [ins[0], w], out)
@@ -440,6 +447,30 @@ class _Builder:
             self.emit(kind, ins, out)
         else:
             raise NotImplementedError(f"no compact opcode for the primitive `{kind}`")
+
+    def power(self, u, n, out):
+        """`u ** n` (an integer `n != 0`, `u` fixed along the step) by binary
+        powering, into `out`."""
+        if n < 0:
+            w = self.new()
+            self.power(u, -n, w)
+            self.emit("div", [self.one, w], out, series=False)
+            return
+        result, base = None, u
+        while n:
+            if n & 1:
+                last = n == 1
+                if result is None:
+                    result = base
+                else:
+                    result = self.emit(
+                        "mul", [result, base], out if last else None, series=False
+                    )
+            n >>= 1
+            if n:
+                base = self.emit("mul", [base, base], series=False)
+        if result == u or self.id(result) != self.id(out):
+            self.emit("copy", [result], out, series=False)
 
     def solve(self, node, ins, outs):
         r"""$M x = r$: $s = r - \sum_b M_{ab} x_b$ at orders $\ge 1$ (the sums over
@@ -1174,6 +1205,89 @@ def compact_coefficients(
         )
     Z = carry[3]
     return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
+
+
+def _inputs0(tape, t, ys, params):
+    """The slots at order 0 before any node: constants, inputs, parameters."""
+    W = t.shape[0]
+    dtype = t.dtype
+    S = tape.values.shape[0]
+    Y = jnp.broadcast_to(tape.values[:, None].astype(dtype), (S, W))
+    state = jnp.stack([t, *ys])
+    P = tape.params.shape[0]
+    lanes = list(params) + [jnp.zeros((W,), dtype)] * (P - len(params))
+    rows = jnp.concatenate([state, jnp.stack(lanes)]) if P else state
+    first = tape.inputs[0]  # (the inputs, then the parameters: consecutive slots)
+    Y = lax.dynamic_update_slice(Y, rows, (first, jnp.asarray(0, jnp.int32)))
+    return Y, jnp.zeros((S, 2, W), dtype), state
+
+
+def _chained(fns):
+    """A family whose blocks hold one opcode each, for values only: every opcode's
+    value over the block and a select by the block's opcode (one loop; a switch
+    would be a kernel per opcode, each a part of the executable to load). `rem`,
+    a libm call per entry, behind a `cond`."""
+    names = [name for name in fns if name not in ("lincomb", "rem")]
+
+    def run(op, prm, a, b, c, trig):
+        op = op[0, 0]
+        value = a
+        for name in names:
+            value = jnp.where(op == OPCODE[name], fns[name](a, b, c, a, a)[0], value)
+        if "rem" in fns:
+            value = lax.cond(op == OPCODE["rem"], lambda: lax.rem(a, b), lambda: value)
+        return value
+
+    return run
+
+
+def _first(fn):
+    """A family function's value only."""
+    return lambda op, prm, a, b, c, trig: fn(op, prm, a, b, c, a, a, trig)[0]
+
+
+_VALUE_FNS = (_first(_affine), _chained(_RARE_FNS), _chained(_LOGIC_FNS),
+              _first(_sincos), _first(_switched(_TRANS_FNS)))  # fmt: skip
+
+
+def _values0(tape, Y, trig):
+    """`_order0`'s values without the per-lane coefficients (for a tape without
+    factorizations), block by block: a smaller program (fewer kernels) that runs
+    as fast."""
+    G0 = tape.op0.shape[1]
+    rows = jnp.arange(G0)[:, None]
+
+    def family(fn, bi, Y):
+        args = tape.arg0[bi]
+        a, b, c = (Y[args[:, i]] for i in range(3))
+        prm = [tape.prm0[bi, i][:, None] for i in range(3)]
+        return fn(tape.op0[bi][:, None], prm, a, b, c, trig)
+
+    branches = [functools.partial(family, _VALUE_FNS[f]) for f in tape.families]
+
+    def block(i, Y):
+        bi = tape.seq0[i, 1]
+        start, n = tape.out0[bi, 0], tape.out0[bi, 1]
+        old = lax.dynamic_slice_in_dim(Y, start, G0, 0)
+        value = lax.switch(tape.seq0[i, 0], branches, bi, Y)
+        value = jnp.where(rows < n, value, old)
+        return lax.dynamic_update_slice(Y, value, (start, jnp.asarray(0, jnp.int32)))
+
+    return lax.fori_loop(0, _bound(tape.seg0[-1]), block, Y)
+
+
+def compact_values(tape: CompactTape, t, ys, params, trig=False):
+    r"""The values of the tape's outputs (`outs`, its program's $f$) at one point:
+    order 0 only, no series. `t`, `ys`, `params` as in `compact_coefficients`;
+    returns an array `(outputs, W)`. The same compiled program evaluates any
+    tape of its size class at any point."""
+    tape = jax.tree.map(jnp.asarray, tape)
+    Y, D, _ = _inputs0(tape, t, ys, params)
+    if tape.seg0.shape[0] > 1:  # (factorizations: their inverses are in D)
+        Y, _ = _order0(tape, Y, D, trig)
+    else:
+        Y = _values0(tape, Y, trig)
+    return Y[tape.perm[tape.outs]]
 
 
 @functools.partial(jax.jit, static_argnames=("K", "trig", "runs", "bounds"))
