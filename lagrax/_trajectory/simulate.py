@@ -221,9 +221,9 @@ def simulate(
     `compiler_options={"xla_cpu_use_fusion_emitters": False}`, as eager calls
     take them (where the installed XLA knows the option): they compile and run
     a batched Runge-Kutta solve faster (`lagrax.Taylor` needs no option: a large
-    step program is computed by its compact program). On a GPU, map a very wide batch in pieces
-    (`jax.lax.map(f, xs, batch_size=100_000)`): XLA compiles one very wide batch
-    into a slower program. Figures: benchmarks/README.md.
+    step program is computed by its compact program). On a GPU, map a very wide
+    batch in pieces (`jax.lax.map(f, xs, batch_size=100_000)`): XLA compiles one
+    very wide batch into a slower program. Figures: benchmarks/README.md.
 
     **Arguments:**
 
