@@ -17,8 +17,8 @@ and integrates them, one state or many at once.
 - Periods of one-coordinate oscillations: `period`, `sweep_periods` (many amplitudes
     at once, a `SweepResult`), the solver `Taylor`, the oracle `quadrature_period`
     (a `QuadratureResult`).
-- Failure statuses: `status_message`, `status_code`, `status_result`,
-    `STATUS_CODES`, `RESULTS`.
+- Failure statuses: `status_message`, `status_code`, `status_member`,
+    `STATUS_CODES`, `PeriodStatus`.
 - `lagrax.systems`: ready-made Lagrangians with their exact references.
 
 lagrax never changes JAX's configuration: for float64, where accuracy is claimed, call
@@ -50,11 +50,11 @@ from ._period.quadrature import (
 )
 from ._period.sweep import sweep_periods as sweep_periods, SweepResult as SweepResult
 from ._results import (
-    RESULTS as RESULTS,
+    PeriodStatus as PeriodStatus,
     status_code as status_code,
     STATUS_CODES as STATUS_CODES,
+    status_member as status_member,
     status_message as status_message,
-    status_result as status_result,
 )
 from ._taylor.solver import Taylor as Taylor
 from ._trajectory.batch import simulate_batch as simulate_batch

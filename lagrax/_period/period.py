@@ -45,8 +45,8 @@ from .._results import (
     NOT_OSCILLATING,
     SINGULAR_MASS,
     STATUS_CODES as STATUS_CODES,
+    status_member,
     status_message as status_message,
-    status_result,
     SUCCESS,
 )
 from .._taylor.solver import Taylor
@@ -208,7 +208,7 @@ def period(
                     f"({STATUS_CODES[code]}): {status_message(code)}."
                 )
         else:  # the status's own message, under jit too
-            out = status_result(out.status).error_if(out, out.status != SUCCESS)
+            out = status_member(out.status).error_if(out, out.status != SUCCESS)
     return (out.period, estimate) if error_estimate else out.period
 
 

@@ -51,7 +51,7 @@ from .._results import (
 )
 
 
-# The statuses are `lagrax.RESULTS` (int view); these names are the quadrature's
+# The statuses are `lagrax.PeriodStatus` (int view); these names are the quadrature's
 # reasons, as codes of that one enumeration.
 EQUILIBRIUM = NOT_OSCILLATING
 ROOT_FAILED = ROOT_FIND_FAILED
@@ -62,7 +62,7 @@ class QuadratureResult(eqx.Module):
     r"""What `lagrax.quadrature_period` returns.
 
     - `periods`: the periods $T$, shaped like `q0`; NaN where `status != 0`.
-    - `status`: int codes shaped like `q0`, the int view of `lagrax.RESULTS`
+    - `status`: int codes shaped like `q0`, the int view of `lagrax.PeriodStatus`
         (shared with `sweep_periods`; `lagrax.STATUS_CODES`): `success`,
         `not_oscillating` (at an equilibrium), `escapes`, `unresolved`,
         `singular_mass`, `root_find_failed`, `not_natural`, `nonfinite_period`. See
