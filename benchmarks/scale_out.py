@@ -64,7 +64,7 @@ def worker(args):
         multihost_utils.sync_global_devices("before")
         t = time.perf_counter()
         res = lagrax.sweep_periods(
-            L, q0, method="quarter", chunk_size=args.chunk_size, rtol=1e-13, atol=1e-13
+            L, q0, method="quarter", lanes=args.lanes, rtol=1e-13, atol=1e-13
         )
         jax.block_until_ready(res)
         multihost_utils.sync_global_devices("after")
@@ -146,8 +146,8 @@ def run_config(processes, devices, args, tmp):
                 str(port),
                 "--count",
                 str(args.count),
-                "--chunk-size",
-                str(args.chunk_size),
+                "--lanes",
+                str(args.lanes),
                 "--repeats",
                 str(args.repeats),
                 "--periods",
@@ -172,7 +172,7 @@ def run_config(processes, devices, args, tmp):
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--count", type=int, default=16384)
-    p.add_argument("--chunk-size", type=int, default=128)
+    p.add_argument("--lanes", type=int, default=128)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--out", default=os.path.join(HERE, "results", "scale_out.json"))
@@ -224,7 +224,7 @@ def main():
     report = {
         "what": (
             f"{args.count} pendulum amplitudes 0.01-3.1 rad, sweep_periods "
-            f"method='quarter', Dopri8, rtol=atol=1e-13, chunk_size={args.chunk_size} "
+            f"method='quarter', Dopri8, rtol=atol=1e-13, lanes={args.lanes} "
             "per device; best of repeats, best of rounds"
         ),
         "command": "python benchmarks/scale_out.py "

@@ -427,7 +427,7 @@ def work_gpu(args):
                         flush=True,
                     )
                     continue
-                run = lambda: lagrax.sweep_periods(L, a, chunk_size=width, **kw)
+                run = lambda: lagrax.sweep_periods(L, a, lanes=width, **kw)
                 t0 = time.perf_counter()
                 jax.block_until_ready(run())
                 compile_s = time.perf_counter() - t0

@@ -12,8 +12,8 @@ serialize_executable`) and loaded in a fraction of a second after:
     batched trajectories), keyed on the text of the lowered program itself (which
     holds everything it computes: a rebuilt Lagrangian with new parameter values that
     reach it as arguments lowers to the same text) and the compile options. A script
-    run again, or a notebook restarted, loads them instead of compiling (~10 s for a
-    first sweep on a CPU core), as heyoka.py's on-disk cache of compiled code does
+    run again, or a notebook restarted, loads them instead of compiling (seconds
+    for a first sweep on a CPU core), as heyoka.py's on-disk cache of compiled code does
     (entries `p*.bin`).
 
 Finding a `cached_call` entry by its lowered text costs the tracing and lowering of

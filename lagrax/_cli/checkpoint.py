@@ -76,15 +76,15 @@ class Blocks:
         from .._period.sweep import CPU_CHUNK, size_class
 
         share = -(-size_class(args.count) // len(devices))
-        self.chunk_size = lane_count(
-            args.chunk_size,
-            "chunk_size",
+        self.lanes = lane_count(
+            args.lanes,
+            "lanes",
             devices,
             share,
             cpu=CPU_CHUNK,
             accelerator=1 << 18,
         )
-        self.block = self.chunk_size * len(devices) * BLOCK_CHUNKS
+        self.block = self.lanes * len(devices) * BLOCK_CHUNKS
         self.count = args.count
         self.n_blocks = {t.name: -(-args.count // self.block) for t in targets}
         self.dir = None if args.out is None else args.out + ".partial"
@@ -107,7 +107,7 @@ class Blocks:
             k: getattr(args, k)
             for k in ("count", "solver", "rtol", "atol", "max_steps")
         }
-        settings["chunk_size"] = self.chunk_size
+        settings["lanes"] = self.lanes
         settings["devices"] = len(devices)
         settings["targets"] = {
             t.name: [list(t.extra["range"]), t.method] for t in targets

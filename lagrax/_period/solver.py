@@ -46,7 +46,7 @@ def resolve_solver(solver, L, dtype):
         # With a recurrence for every primitive, and a program small enough to be
         # unrolled: the loop over orders runs slower than the fallback (see `Taylor`).
         try:  # (tracing the order-K program also finds a primitive without one)
-            supported = plain.unrolls(accel, dtype, scalar, scalar, scalar)
+            supported = plain._unrolls(accel, dtype, scalar, scalar, scalar)
         except NotImplementedError:
             supported = False
         # Where L switches branch with the state or time, a Taylor step across a

@@ -61,7 +61,7 @@ class TaylorStepper(AbstractStepper):
 
     (the last four orders instead of two: from rest $x(s)$ is even, its odd
     coefficients vanish, and the last two orders would rest on one number that passes
-    through zero as the amplitude varies, a first step too long by 1.4x on some
+    through zero as the amplitude varies, a first step too long on some
     amplitudes). With `truncation` $= C$ (trajectories),
     $f = (\varepsilon/C)^{1/(K+1)}$: the first term the step drops, extrapolated as
     $(h/\rho)^{K+1}$, is $\varepsilon/C$.

@@ -1,7 +1,7 @@
 r"""Many trajectories at once: one compiled loop per device over refilling lanes.
 
 `simulate_batch` integrates a batch of releases with `lagrax.Taylor` in one
-`lax.while_loop` per device over `width` lanes, not as `jax.vmap` of a diffrax solve.
+`lax.while_loop` per device over `lanes` lanes, not as `jax.vmap` of a diffrax solve.
 Every iteration advances every lane by one Taylor step computed on the lane-batched
 arrays (the coefficient program of the vector field, unrolled over the orders and
 fused by XLA into one loop over the lanes), with the step length chosen from the
@@ -122,9 +122,8 @@ class SystemTaylorStepper(TaylorStepper):
         stacked = [jnp.stack(x, axis=1), jnp.stack(v, axis=1)]
         # Unrolled, the orders are one vectorized loop over the lanes (through the
         # select of `branch_free`); looped, every order is a few hundred small
-        # loops (a chain of four pendulums, Taylor-16, 64 lanes: ~6 us per
-        # lane-step unrolled, ~50 us looped). The budget bounds the compile
-        # (~45 s for that chain's 244 nodes x 16 orders on one core).
+        # loops, several times slower. The budget bounds the unrolled program's
+        # compile, which grows with its size (benchmarks/README.md).
         unrolled = K * len(self.system.prog.nodes) <= _UNROLL_BUDGET
         coefs = self.system.coefficients(
             K, s, stacked, [field.params], unrolled=unrolled, trig=True
@@ -342,9 +341,8 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, source):
     idx0 = jnp.arange(W, dtype=jnp.int32)
     x, v, p, done = load(idx0)
     ints = jnp.stack([idx0] + [jnp.zeros_like(idx0)] * 3, axis=1)
-    # Lanes with nothing to write aim past the end, and their rows are dropped: a
-    # scatter whose lanes all wrote one spare row ran ~40 ms per iteration on a GPU
-    # (10^4 lanes, the writes to one row serialized), as long as the step itself.
+    # Lanes with nothing to write aim past the end, and their rows are dropped: on
+    # a GPU, a scatter whose lanes all write one spare row serializes those writes.
     saves = jnp.full((B, M, 2 * n), jnp.nan, dtype)
     ends = jnp.full((B, 2 * n + 4), jnp.nan, dtype)
     carry = (x, v, p, ints, done, saves, ends, jnp.int32(W))
@@ -473,7 +471,7 @@ def simulate_batch(
     atol=1e-8,
     max_steps: int = 16384,
     throw: bool = True,
-    width: int | None = None,
+    lanes: int | None = None,
     **kwargs,
 ) -> dfx.Solution:
     r"""Integrates Lagrange's equations from a batch of releases, batch axis first.
@@ -549,8 +547,8 @@ def simulate_batch(
     # One loop per device, each over its share of the releases.
     devices = tuple(jax.local_devices())
     D = len(devices) if B >= len(devices) else 1
-    width = lane_count(
-        width, "width", devices, -(-B // D), cpu=256, accelerator=1 << 17
+    lanes = lane_count(
+        lanes, "lanes", devices, -(-B // D), cpu=256, accelerator=1 << 17
     )
     plan = _saveat_plan(saveat, t0, t1)
     if not isinstance(solver, Taylor) or plan == "vmap" or kwargs:
@@ -578,7 +576,7 @@ def simulate_batch(
         L=L_c,
         force=force,
         order=solver.order,
-        width=width,
+        width=lanes,
         n_save=0 if ts is None else int(ts.shape[0]),
         save_t1=save_t1,
         max_steps=max_steps,
