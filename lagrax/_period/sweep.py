@@ -33,7 +33,7 @@ from .solver import stepper_of
 
 
 # Lanes per device on a CPU by default (also `lagrax sweep`'s: they share programs).
-CPU_CHUNK = 256
+CPU_LANES = 256
 
 
 def _lane_order(q0):
@@ -195,7 +195,7 @@ def sweep_periods(
         "lanes",
         devices,
         per_device,
-        cpu=CPU_CHUNK,
+        cpu=CPU_LANES,
         accelerator=1 << 18,
     )
     check_instance(

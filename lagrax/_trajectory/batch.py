@@ -440,7 +440,7 @@ def _looped(devices):
     return lambda cfg, *args: (*fn(cfg, *args), args[-2])
 
 
-def _saveat_plan(saveat, t0, t1):
+def _saveat_plan(saveat):
     """`(ts, save_t1)` for a `SaveAt` the loop supports (states at `ts`, at `t1`, or
     both), else `"vmap"` (then `jax.vmap` of `simulate` runs it: `t0=True`, `steps`,
     `dense`, a `fn`, several `SubSaveAt`s)."""
@@ -479,32 +479,36 @@ def simulate_batch(
     The batched form of `lagrax.simulate`: release $b$ starts at
     $(q_0[b], \dot q_0[b])$ at $t_0[b]$ and ends at $t_1[b]$ (scalars apply to every
     release). With `solver=lagrax.Taylor(...)` (the default, order 20) the batch runs
-    in one compiled loop per device (see the module docstring): step lengths by
-    `lagrax.Taylor`'s rule from the last coefficients with
-    $\varepsilon = \text{atol} + \text{rtol}\,\lVert y\rVert_\infty$ per release
-    (at the same tolerances as accurate as `diffrax.Dopri8`, or more), saved states
-    from the steps' polynomials. Any other solver, or a `SaveAt` or
-    keyword the loop does not take (`t0=True`, `steps`, `dense`, `fn`, `event`,
-    `adjoint`, a `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate`
-    with the same arguments (on a CPU compiled once for the next call with the same
-    `L`, solver and keywords, with XLA's elemental emitters). The loop is compiled
-    per body of `L`: a rebuilt `L` with
-    new parameter values reuses it (they reach it as arguments), and on a CPU a later
-    process loads it from the library's disk cache without tracing it. Under your own
-    `jax.jit` the loop becomes part of your program: on a CPU give that `jit`
-    `compiler_options={"xla_cpu_use_fusion_emitters": False}` (as for `Taylor`;
-    with XLA's default emitters a large loop compiles for minutes: over five for the
-    double pendulum at order 16). Forward mode
-    (`jax.jvp`, `jax.jacfwd`) differentiates it; reverse mode does not (a
-    `lax.while_loop`): for `jax.grad`, `jax.vmap` of `lagrax.simulate` with a
-    diffrax adjoint.
+    in one compiled loop per device over `lanes` lanes, a lane that finishes taking
+    the next release from a queue: step lengths by `lagrax.Taylor`'s rule with
+    $\varepsilon = \text{atol} + \text{rtol}\,\lVert y\rVert_\infty$ per release (at
+    the same tolerances as accurate as `diffrax.Dopri8`, or more), saved states from
+    the steps' polynomials. Any other solver, or a `SaveAt` or keyword the loop does
+    not take (`SaveAt(t0=True)`, `steps`, `dense`, `fn`; `event`, `adjoint`, a
+    `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate` with the same
+    arguments (on a CPU compiled once, for the next call with the same `L`, solver
+    and keywords).
+
+    The loop is compiled per body of `L`: a rebuilt `L` with new parameter values
+    reuses it (they reach it as arguments), and on a CPU a later process loads it
+    from the library's disk cache. A new Lagrangian's first eager calls on a CPU may
+    run on a compact program shared by Lagrangians of a size class, until the time
+    spent there would pay for its own program's compile. Under your own `jax.jit` the
+    loop becomes part of your program: on a CPU give that `jit`
+    `compiler_options={"xla_cpu_use_fusion_emitters": False}` (XLA's elemental
+    emitters, which eager calls take): with the default emitters a large loop (the
+    double pendulum at order 16) compiles for minutes. Forward mode (`jax.jvp`,
+    `jax.jacfwd`) differentiates it; reverse mode does not (a `lax.while_loop`): for
+    `jax.grad`, `jax.vmap` of `lagrax.simulate` with a diffrax adjoint. Speed against
+    heyoka.py: `benchmarks/README.md`.
 
     **Arguments:** as `lagrax.simulate`, with `q0`, `qdot0` of shape `(B, n)`,
-    `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, and
+    `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, `solver` by default
+    `lagrax.Taylor()`, and
 
-    - `width`: lanes of the compiled loop per device; by default 256 on a CPU and,
-        on a GPU, every release of a device's share up to 131,072 (an H200, 10^6
-        double pendulums: 1.0 M trajectories/s; 256 lanes leave it mostly idle).
+    - `lanes`: lanes of the compiled loop per device (static); by default 256 on a
+        CPU and, on a GPU, every release of a device's share up to 131,072 (a GPU
+        needs many lanes in flight).
 
     **Returns:**
 
@@ -539,10 +543,10 @@ def simulate_batch(
     dtype = jnp.result_type(q0, qdot0)
     q0, qdot0 = q0.astype(dtype), qdot0.astype(dtype)
     B = q0.shape[0]
-    lanes = lambda x, name: _per_release(x, name, B, dtype)
-    t0, t1 = lanes(t0, "t0"), lanes(t1, "t1")
-    rtol = lanes(_positive(rtol, "rtol", dtype), "rtol")
-    atol = lanes(_positive(atol, "atol", dtype), "atol")
+    per_release = lambda x, name: _per_release(x, name, B, dtype)
+    t0, t1 = per_release(t0, "t0"), per_release(t1, "t1")
+    rtol = per_release(_positive(rtol, "rtol", dtype), "rtol")
+    atol = per_release(_positive(atol, "atol", dtype), "atol")
     max_steps = positive_int(max_steps, "max_steps")
     # One loop per device, each over its share of the releases.
     devices = tuple(jax.local_devices())
@@ -550,7 +554,7 @@ def simulate_batch(
     lanes = lane_count(
         lanes, "lanes", devices, -(-B // D), cpu=256, accelerator=1 << 17
     )
-    plan = _saveat_plan(saveat, t0, t1)
+    plan = _saveat_plan(saveat)
     if not isinstance(solver, Taylor) or plan == "vmap" or kwargs:
         # (Keyed on what L computes: a rebuilt L with new parameter values reuses
         # the program, its values as arguments.)
