@@ -2,9 +2,9 @@
 and 2 processes × 1 device (jax.distributed, gloo collectives on 127.0.0.1).
 
 The same sweep every time: pendulum amplitudes 0.01–3.1 rad, `method="quarter"`,
-Dopri8, rtol = atol = 1e-13, the same chunk size per device; every configuration is
+Dopri8, rtol = atol = 1e-13, the same lanes per device; every configuration is
 checked against the exact AGM period and against the one-device periods (bit for bit
-where the chunking is the same). Each configuration runs in fresh processes, one after
+where the lanes are the same). Each configuration runs in fresh processes, one after
 the other, in one invocation of this script: compare the ratios within a run.
 
     python benchmarks/scale_out.py                  # 16384 amplitudes

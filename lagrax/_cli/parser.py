@@ -136,7 +136,7 @@ def parser():
         "--lanes",
         type=int,
         default=None,
-        help="lanes per compiled batch and device (default 256 on a CPU, as "
+        help="lanes per compiled loop and device (default 256 on a CPU, as "
         "lagrax.sweep_periods: the command and the library share their compiled "
         "programs; on a GPU every amplitude of a device's share, up to 262144)",
     )

@@ -106,8 +106,9 @@ def sweep_periods(
     `method`, `lanes`, `max_steps`, `error_estimate`, device set and size class of the
     amplitude count: an eager sweep of $n$ amplitudes runs the program of the smallest
     of 8, 12, 16, 24, 32, 48, ... (powers of two and 1.5 times them) that holds $n$,
-    the extra lanes padded (under `jit` the count itself). Tolerances, `t_max` and
-    `energy_tol` are arguments. On a CPU an eager sweep's program is kept on disk
+    padded with NaN release points, which take no step (under `jit`, the count
+    itself). Tolerances, `t_max` and `energy_tol` are arguments. On a CPU an eager
+    sweep's program is kept on disk
     (`$LAGRAX_CACHE_DIR`, else `~/.cache/lagrax/executables`, at most 1 GiB, least
     recently used removed first; `LAGRAX_CACHE_DIR=""` turns it off): a later
     process loads it instead of compiling. While JAX's persistent compilation cache
@@ -315,8 +316,7 @@ def _eager(L_c, cfg, devices, q, order, args):
 def _in_pieces(run, q0, order, size, meter, pad=None) -> tuple[Periods, Array]:
     """The sweep in order, in pieces of one size (one compilation) padded with
     `pad` (default: the last release point), the progress `meter` (if any) stepped
-    after each;
-    back in input order, with the total of the steps. With NumPy where q0 is
+    after each; back in input order, with the total of the steps. With NumPy where q0 is
     concrete, and `jax.device_put` to hand the results back: op-by-op jnp compiles
     each operation (even `jnp.asarray`) on its first call."""
     n = q0.shape[0]

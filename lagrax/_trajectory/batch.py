@@ -504,7 +504,8 @@ def simulate_batch(
 
     **Arguments:** as `lagrax.simulate`, with `q0`, `qdot0` of shape `(B, n)`,
     `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, `solver` by default
-    `lagrax.Taylor()`, and
+    `lagrax.Taylor()` (the solver the loop is built for; `simulate`'s default,
+    `Tsit5()`, would run as `jax.vmap` of `simulate`), and
 
     - `lanes`: lanes of the compiled loop per device (static); by default 256 on a
         CPU and, on a GPU, every release of a device's share up to 131,072 (a GPU
