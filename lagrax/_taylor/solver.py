@@ -103,8 +103,8 @@ class Taylor(AbstractTaylorSolver):
     **Example:**
 
     ```python
-    L = lagrax.systems.double_pendulum.lagrangian()
-    sol = lagrax.simulate(L, jnp.array([1.0, 0.5]), jnp.zeros(2), 0.0, 10.0,
+    L = lagrax.systems.pendulum.lagrangian()
+    sol = lagrax.simulate(L, jnp.array([1.0]), jnp.array([0.0]), 0.0, 10.0,
                           solver=lagrax.Taylor(), rtol=1e-12, atol=1e-12)
     ```
     """
