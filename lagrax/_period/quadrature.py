@@ -404,7 +404,10 @@ def quadrature_period(
         rest); a scalar gives a scalar period.
     - `rtol`: the largest acceptable estimated relative error (`errors`); a release
         point beyond it (too near a hilltop for this precision) gets status
-        `unresolved` and no number. An array: changing it does not recompile.
+        `unresolved` and no number. An array: changing it does not recompile. A
+        threshold on the result, not a step tolerance: its default, 1e-12, sits
+        above what the default rule reaches, where the integrators' 1e-13 steers
+        their steps.
     - `nodes`: Gauss–Legendre nodes of the outer rule (even; static). 128 reaches
         ~1e-13 for the pendulum up to ~1e-2 from the top; releases nearer an unstable
         equilibrium need more (or get status `unresolved`).
