@@ -108,7 +108,7 @@ def test_two_processes_each_get_the_one_process_result_bit_for_bit(tmp_path):
     files = [tmp_path / f"p{i}.npz" for i in range(2)]
     single = tmp_path / "single.npz"
     # Two processes of one device each, and one process of two devices: the same
-    # global devices, the same chunking.
+    # global devices, the same lanes.
     procs = [start(SWEEP, 2, i, port, files[i]) for i in range(2)]
     procs.append(start(SWEEP, 1, 0, 0, single, devices=2))
     for proc in procs:
