@@ -497,7 +497,7 @@ def simulate_batch(
     loop becomes part of your program: on a CPU give that `jit`
     `compiler_options={"xla_cpu_use_fusion_emitters": False}` (XLA's elemental
     emitters, which eager calls take): with the default emitters a large loop (the
-    double pendulum at order 16) compiles for minutes. Forward mode (`jax.jvp`,
+    double pendulum at order 16) compiles several times longer. Forward mode (`jax.jvp`,
     `jax.jacfwd`) differentiates it; reverse mode does not (a `lax.while_loop`): for
     `jax.grad`, `jax.vmap` of `lagrax.simulate` with a diffrax adjoint. Speed against
     heyoka.py: `benchmarks/README.md`.
