@@ -58,7 +58,7 @@ from ._results import (
     status_member as status_member,
     status_message as status_message,
 )
-from ._taylor.solver import Taylor as Taylor
+from ._taylor.taylor import Taylor as Taylor
 from ._trajectory.batch import simulate_batch as simulate_batch
 from ._trajectory.gauss_legendre import (
     GaussLegendre4 as GaussLegendre4,

@@ -324,20 +324,20 @@ def test_the_choice_of_stepper_is_kept_for_later_processes(
     monkeypatch, tmp_path, without_jax_cache
 ):
     from lagrax._jaxpr.canonical import canonical_lagrangian
-    from lagrax._period import reuse
+    from lagrax._period import solver as period_solver
 
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     decided = []
-    resolve = reuse._resolve
+    resolve = period_solver._resolve
     monkeypatch.setattr(
-        reuse, "_resolve", lambda *a: [decided.append(a[0]), resolve(*a)][1]
+        period_solver, "_resolve", lambda *a: [decided.append(a[0]), resolve(*a)][1]
     )
     solver = lagrax.Taylor(fallback=dfx.Dopri8())
 
     def choose(V):
-        monkeypatch.setattr(reuse, "_RESOLVED", collections.OrderedDict())
+        monkeypatch.setattr(period_solver, "_RESOLVED", collections.OrderedDict())
         L_c, consts = canonical_lagrangian(_potential(V), np.float64)
-        return reuse.resolved_solver(L_c, consts, solver, np.float64)
+        return period_solver.resolved_solver(L_c, consts, solver, np.float64)
 
     # cos has a Taylor recurrence, erf has none: decided once each, then read.
     assert choose(jnp.cos) == lagrax.Taylor() and len(decided) == 1

@@ -49,11 +49,10 @@ from .._results import (
     status_message as status_message,
     SUCCESS,
 )
-from .._taylor.solver import Taylor
+from .._taylor.taylor import Taylor
 from .methods import Method
 from .options import check_options
-from .reuse import canonical_inputs
-from .solver import stepper_of
+from .solver import canonical_inputs, stepper_of
 from .sweep import _eager, _sweep_call
 
 

@@ -22,14 +22,13 @@ from .._checks import (
 from .._jaxpr.canonical import canonical_lagrangian
 from .._jaxpr.fusion import elemental_options
 from .._results import status_message, SUCCESS
-from .._taylor.solver import Taylor
+from .._taylor.taylor import Taylor
 from . import tier
 from .autodiff import forward_jacobian, forward_mode, periods_diff, tangents_of
 from .device import Periods
 from .methods import Method
 from .options import check_options
-from .reuse import resolved_solver
-from .solver import stepper_of
+from .solver import resolved_solver, stepper_of
 
 
 # Lanes per device on a CPU by default (also `lagrax sweep`'s: they share programs).

@@ -3,7 +3,7 @@ r"""Which program sweeps a Lagrangian: the compact one, or the specialized one.
 The specialized program (L's equations compiled in) runs fastest but costs seconds
 of XLA compile for each new Lagrangian. The compact program runs the same period
 program with $L$ as data (`mechanics.CompactMechanics`,
-`lagrax._stepper.compact.CompactTaylorStepper`: two compact tapes,
+`lagrax._taylor.compact_stepper.CompactTaylorStepper`: two compact tapes,
 `lagrax._taylor.compact`): its executable is the same for every Lagrangian whose
 tapes are of one size class, compiled once per machine and kept on disk
 (`lagrax._cache.executables.call`), so that a new $L$ costs the tracing of its
@@ -37,12 +37,12 @@ import numpy as np
 from .._cache import executables
 from .._jaxpr import scalarize as _scalarize
 from .._jaxpr.fusion import fusion_off
-from .._stepper.compact import CompactTaylorStepper
-from .._stepper.taylor import TaylorStepper
 from .._taylor import compact
+from .._taylor.compact_stepper import CompactTaylorStepper
+from .._taylor.stepper import TaylorStepper
 from .._taylor.system import _eval_entries, _SystemProgram
 from .._trajectory.batch import _compact_mode
-from .mechanics import AutodiffMechanics, CompactLagrangian, PeriodTapes
+from .quantities import AutodiffMechanics, CompactLagrangian, PeriodTapes
 
 
 # Seconds the specialized program takes to trace and compile: a sweep's, one

@@ -34,7 +34,7 @@ import numpy as np
 from .._compat import unwrap_time
 from .._jaxpr.fusion import one_fusion
 from .._jaxpr.switches import switches
-from .._stepper.taylor import TRUNCATION
+from .._taylor.stepper import TRUNCATION
 from .._trajectory.term import LagrangianTerm
 from . import compact
 

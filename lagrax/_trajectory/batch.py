@@ -49,10 +49,10 @@ from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import elemental_options
 from .._jaxpr.switches import switches
 from .._stepper.base import LaneField
-from .._stepper.taylor import log2_approx, TaylorStepper, TRUNCATION
 from .._taylor import compact
-from .._taylor.solver import Taylor
+from .._taylor.stepper import log2_approx, TaylorStepper, TRUNCATION
 from .._taylor.system import System
+from .._taylor.taylor import Taylor
 from .simulate import elemental, simulate
 from .term import _LagrangeVectorField, BoundLagrangian
 

@@ -16,8 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._taylor.program import taylor_coefficients
-from .base import (
+from .._stepper.base import (
     abs_max,
     AbstractStepper,
     fused,
@@ -28,6 +27,7 @@ from .base import (
     TaylorExpansion,
     within_or_identity,
 )
+from .program import taylor_coefficients
 
 
 # The trajectories' step (`simulate_batch`, `Taylor` as a diffrax solver): the first
