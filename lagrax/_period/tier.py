@@ -26,7 +26,6 @@ only), "2" (the compact one wherever it applies: benchmarks, tests).
 """
 
 import collections
-import os
 import time
 import warnings
 
@@ -169,7 +168,7 @@ def applies(stepper) -> bool:
     return (
         type(stepper) is TaylorStepper
         and _compact_mode() != "0"
-        and executables._applies()
+        and executables.applies()
         and executables.cache_dir() is not None
     )
 
@@ -238,11 +237,7 @@ class Compact:
 
     def ready(self) -> bool:
         """Whether the executable is compiled in this process or on disk."""
-        # (The cache's own tables and paths: `executables.call` has no
-        # `available` of its own yet.)
-        key = executables._key(self.static, self.args)
-        path = executables._path(key)
-        return key in executables._LOADED or (path is not None and os.path.exists(path))
+        return executables.call_available(self.static, *self.args)
 
     def run(self, kind, specialized):
         """The compact program where its executable is at hand, or where the

@@ -715,7 +715,7 @@ def _compact_mode() -> str:
 def _compact_applies() -> bool:
     """Whether the compact tier may be taken: on a CPU (executables are kept on
     disk for one process's CPU devices), unless `LAGRAX_COMPACT=0`."""
-    return _compact_mode() != "0" and executables._applies()
+    return _compact_mode() != "0" and executables.applies()
 
 
 def _known(jitted, options, origin, args) -> bool:
