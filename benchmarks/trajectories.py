@@ -73,6 +73,7 @@ BOUNDS = (1e-9, 1e-12)
 SYSTEMS = {
     "double_pendulum": dict(n=2, count=1024, spread=1.0, kind="closed"),
     "chain2": dict(n=2, count=256, spread=0.5, kind="chain"),
+    "chain3": dict(n=3, count=256, spread=0.5, kind="chain", bounds=(1e-9, 1e-10)),
     # From chain4 on, no float64 method comes under 1e-12 on these releases
     # (heyoka.py at tol 1e-15: 1.4e-11 on chain4): the tight bound is 1e-10.
     "chain4": dict(n=4, count=256, spread=0.5, kind="chain", bounds=(1e-9, 1e-10)),
