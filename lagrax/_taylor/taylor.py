@@ -28,6 +28,8 @@ What its docstring leaves out:
   out order by order (fastest).
 """
 
+import enum
+import math
 from collections.abc import Callable
 
 import diffrax as dfx
@@ -41,6 +43,41 @@ from .program import taylor_coefficients
 
 
 __all__ = ["Taylor"]
+
+
+# The order where none is given and none is chosen: the period kernel's and the
+# diffrax solver's (tuned there).
+DEFAULT_ORDER = 20
+# `chosen_order`'s lowest: the lowest order measured (benchmarks/orders.py).
+LOWEST_ORDER = 12
+
+
+class _Order(enum.IntEnum):
+    """`order` where none was given: `CHOSEN` equals `DEFAULT_ORDER` (the period
+    kernel and the diffrax solver step at it, and `Taylor()` equals itself rebuilt
+    from its fields) and marks the order for `simulate_batch` to choose per call.
+    (An enumeration member: the disk cache's pre-keys write it out.)"""
+
+    CHOSEN = DEFAULT_ORDER
+
+
+def _order_or_default(order):
+    return _Order.CHOSEN if order is None else order
+
+
+def order_is_chosen(solver) -> bool:
+    """Whether `solver`'s order was left to `chosen_order` (`Taylor(order=None)`)."""
+    return solver.order is _Order.CHOSEN
+
+
+def chosen_order(tol) -> int:
+    """The Taylor order of `Taylor`'s docstring for the tolerance `tol` (a float, or
+    None where it is not known when traced)."""
+    if tol is None or not tol > 0:
+        return DEFAULT_ORDER
+    # heyoka.py's order for `tol`, rounded up to an even order.
+    K = math.ceil(1 - math.log(tol) / 2)
+    return min(max(K + K % 2, LOWEST_ORDER), DEFAULT_ORDER)
 
 
 class Taylor(AbstractTaylorSolver):
@@ -91,8 +128,16 @@ class Taylor(AbstractTaylorSolver):
 
     **Arguments:**
 
-    - `order`: $K$, the degree of the polynomials (default 20, the order heyoka.py
-        picks for float64 at its default tolerance; $K \geq 2$).
+    - `order`: $K \geq 2$, the degree of the polynomials, or `None` (default):
+        `simulate_batch` then chooses it per call from the tolerance, as heyoka.py
+        does, rounded up to an even order (an odd order ends farther from the
+        solution at the same tolerance), within $[12, 20]$:
+        $K = 2\lceil\lceil 1 - \ln(\text{tol})/2\rceil / 2\rceil$ with tol the
+        tightest release's $\max(\text{rtol}, \text{atol})$: 12 down to 1e-9, 14
+        to 1e-11, 16 to 1e-13, 18 at 1e-14, 20 from 1e-15 on and where the
+        tolerances are traced. Elsewhere (the period kernel, the diffrax solver)
+        `None` means 20, the order heyoka.py picks for float64 at its default
+        tolerance. Figures: `benchmarks/README.md`.
     - `max_step`: the period kernel's longest step in the lane's units of time,
         $\sqrt{|q_0| / |\ddot q_0|}$ (default 2, a third of a small oscillation's
         period, so that no event is stepped over); unused elsewhere.
@@ -109,7 +154,7 @@ class Taylor(AbstractTaylorSolver):
     ```
     """
 
-    order: int = eqx.field(static=True, default=20)
+    order: int = eqx.field(static=True, default=None, converter=_order_or_default)
     max_step: float = eqx.field(static=True, default=2.0)
     fallback: "dfx.AbstractERK | None" = eqx.field(static=True, default=None)
 

@@ -52,7 +52,7 @@ from .._stepper.base import LaneField
 from .._taylor import compact
 from .._taylor.stepper import log2_approx, TaylorStepper, TRUNCATION
 from .._taylor.system import System
-from .._taylor.taylor import Taylor
+from .._taylor.taylor import chosen_order, order_is_chosen, Taylor
 from .simulate import elemental, simulate
 from .term import _LagrangeVectorField, BoundLagrangian
 
@@ -370,6 +370,17 @@ def _system(L_c, consts, force, q, v):
     return System(f, zero, [q, v], [zero + 1])
 
 
+def _order(solver, rtol, atol) -> int:
+    """The solver's order, or where it is left to the call (`Taylor(order=None)`)
+    the one for the tightest release's tolerance (`Taylor`'s docstring)."""
+    if not order_is_chosen(solver):
+        return solver.order
+    tol = None
+    if is_concrete(rtol, atol):  # (per release, NumPy: no op-by-op compile)
+        tol = float(np.min(np.maximum(np.asarray(rtol), np.asarray(atol))))
+    return chosen_order(tol)
+
+
 def _switches(L_c, consts, force, n, dtype) -> bool:
     """Whether L or the force switches branch with the state or time (traced once,
     nothing evaluated)."""
@@ -478,9 +489,10 @@ def simulate_batch(
 
     The batched form of `lagrax.simulate`: release $b$ starts at
     $(q_0[b], \dot q_0[b])$ at $t_0[b]$ and ends at $t_1[b]$ (scalars apply to every
-    release). With `solver=lagrax.Taylor(...)` (the default, order 20) the batch runs
-    in one compiled loop per device over `lanes` lanes, a lane that finishes taking
-    the next release from a queue: step lengths by `lagrax.Taylor`'s rule with
+    release). With `solver=lagrax.Taylor(...)` (the default; without an `order`, its
+    order chosen from the tolerance) the batch runs in one compiled loop per device
+    over `lanes` lanes, a lane that finishes taking the next release from a queue:
+    step lengths by `lagrax.Taylor`'s rule with
     $\varepsilon = \text{atol} + \text{rtol}\,\lVert y\rVert_\infty$ per release (at
     the same tolerances as accurate as `diffrax.Dopri8`, or more), saved states from
     the steps' polynomials. Any other solver, or a `SaveAt` or keyword the loop does
@@ -580,7 +592,7 @@ def simulate_batch(
     cfg = _Config(
         L=L_c,
         force=force,
-        order=solver.order,
+        order=_order(solver, rtol, atol),
         width=lanes,
         n_save=0 if ts is None else int(ts.shape[0]),
         save_t1=save_t1,
