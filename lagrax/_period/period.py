@@ -153,7 +153,7 @@ def period(
     - `error_estimate`: also return an estimate of $|T - T_\text{exact}|/T$ (see
         `sweep_periods`: with `lagrax.Taylor()` and `"matched"` or `"quarter"` a
         first-order bound from the solve itself, else, or where that bound cannot
-        vouch for it, a second solve at looser tolerances), and report a lane whose
+        vouch for it, a second solve at tighter tolerances), and report a lane whose
         estimate exceeds 100 rtol as `tolerance_not_met`.
 
     **Returns:**

@@ -95,22 +95,26 @@ def sweep_periods(
     $d\tau/dE$ (a finite-part integral from rest); its sums cost a few percent of the
     solve. Where that bound cannot vouch for a lane (above 100 rtol, a leverage beyond
     its range, a mass that varies), and for every other method and solver, the lane is
-    solved a second time at 10x looser tolerances (for `"matched"`, from the far turning
-    point moved across the band within which float64 rounding of $L$ leaves it
-    undetermined), and the estimate is 3 times the relative difference plus 64 ulps;
-    that second solve costs a little less than the first, for the lanes that need it
-    only. Validated with `Taylor()` and `Dopri8` against exact periods (pendulum,
-    cycloid, the asymmetric well to 0.99 of its hump against a 40-digit quadrature,
-    random wells against `quadrature_period`; `benchmarks/accuracy.py --periods`).
-    The bound is never below the true error from rtol 1e-13 to 1e-8, 4-20x above it
-    at the median from 1e-12 on and ~50-80x at the default, where the true error is
-    a few ulps of rounding. The second solve's estimate is ~25x above it at the median
-    at the default tolerances, but it compares two solves: where a lane's error does
-    not shrink with the tolerance it can fall below (measured with Dopri8 at rtol
-    1e-10 on a few percent of the pendulum's lanes, and near a separatrix with
-    "half" and "full", whose rounding loss past the bottom is random). With
-    lower-order pairs (`Tsit5`, `Dopri5`) the calibration is not established: the
-    second solve's estimate was measured below the true error on some lanes (0.47x).
+    solved a second time at 10x tighter tolerances (for `"matched"`, from the far
+    turning point moved across the band within which float64 rounding of $L$ leaves it
+    undetermined), nearer the truth than the first solve, and the estimate is 4 times
+    the relative difference plus a fraction of rtol (0.02 with a Runge–Kutta step, 0.1
+    with a Taylor step: where a lane's error happens to cancel at one tolerance and
+    not at the other, the two solves agree better than either agrees with the truth)
+    plus 16 ulps; that second solve costs a little more than the first, for the lanes
+    that need it only. Validated with `Taylor()` and `Dopri8` against exact periods
+    (pendulum, cycloid, the asymmetric well to 0.99 of its hump against a 40-digit
+    quadrature, random wells against `quadrature_period`; `benchmarks/accuracy.py
+    --periods`). The bound is never below the true error from rtol 1e-13 to 1e-8,
+    2-10x above it at the median from 1e-12 on and ~30x at the default, where the
+    true error is a few ulps of rounding. The second solve's estimate is 4-5x above
+    it at the median with Dopri8 (every method) and 5-20x with Taylor ("half",
+    "full"), never below
+    with Dopri8 on the pendulum's and the well's lanes at rtol 1e-13 and 1e-10; with
+    Taylor's "half" and "full" it was below on one lane within ~0.15 of the
+    pendulum's separatrix, where the rounding loss past the bottom is the same in
+    both solves. With lower-order pairs (`Tsit5`, `Dopri5`) the calibration is not
+    established.
     A lane whose estimate exceeds 100 rtol gets status `tolerance_not_met` and no
     number; `error_estimate=False` skips the estimate.
 
