@@ -2,9 +2,9 @@
 and 2 processes × 1 device (jax.distributed, gloo collectives on 127.0.0.1).
 
 The same sweep every time: pendulum amplitudes 0.01–3.1 rad, `method="quarter"`,
-Dopri8, rtol = atol = 1e-13, the same chunk size per device; every configuration is
+Dopri8, rtol = atol = 1e-13, the same lanes per device; every configuration is
 checked against the exact AGM period and against the one-device periods (bit for bit
-where the chunking is the same). Each configuration runs in fresh processes, one after
+where the lanes are the same). Each configuration runs in fresh processes, one after
 the other, in one invocation of this script: compare the ratios within a run.
 
     python benchmarks/scale_out.py                  # 16384 amplitudes
@@ -64,7 +64,7 @@ def worker(args):
         multihost_utils.sync_global_devices("before")
         t = time.perf_counter()
         res = lagrax.sweep_periods(
-            L, q0, method="quarter", chunk_size=args.chunk_size, rtol=1e-13, atol=1e-13
+            L, q0, method="quarter", lanes=args.lanes, rtol=1e-13, atol=1e-13
         )
         jax.block_until_ready(res)
         multihost_utils.sync_global_devices("after")
@@ -146,8 +146,8 @@ def run_config(processes, devices, args, tmp):
                 str(port),
                 "--count",
                 str(args.count),
-                "--chunk-size",
-                str(args.chunk_size),
+                "--lanes",
+                str(args.lanes),
                 "--repeats",
                 str(args.repeats),
                 "--periods",
@@ -172,7 +172,7 @@ def run_config(processes, devices, args, tmp):
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--count", type=int, default=16384)
-    p.add_argument("--chunk-size", type=int, default=128)
+    p.add_argument("--lanes", type=int, default=128)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--out", default=os.path.join(HERE, "results", "scale_out.json"))
@@ -224,7 +224,7 @@ def main():
     report = {
         "what": (
             f"{args.count} pendulum amplitudes 0.01-3.1 rad, sweep_periods "
-            f"method='quarter', Dopri8, rtol=atol=1e-13, chunk_size={args.chunk_size} "
+            f"method='quarter', Dopri8, rtol=atol=1e-13, lanes={args.lanes} "
             "per device; best of repeats, best of rounds"
         ),
         "command": "python benchmarks/scale_out.py "

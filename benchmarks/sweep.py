@@ -392,7 +392,7 @@ def work_jax(args):
 
 def work_gpu(args):
     """The defaults' sweep and two kernels alone on the default backend (a GPU), at
-    `--gpu-sizes` amplitudes and `--gpu-widths` lanes; each row printed as it is
+    `--gpu-sizes` amplitudes and `--gpu-lanes` lanes; each row printed as it is
     measured, and rows skipped once `--budget` seconds have passed."""
     import jax
 
@@ -417,24 +417,24 @@ def work_gpu(args):
         a = jnp.asarray(a_np)
         exact = _exact(a_np)
         for label, kw in configs:
-            for width in args.gpu_widths:
-                if width > max(n, min(args.gpu_widths)):
+            for lanes in args.gpu_lanes:
+                if lanes > max(n, min(args.gpu_lanes)):
                     continue
                 if time.perf_counter() - start > args.budget:
                     print(
-                        f"budget spent: {label} n={n} width={width} skipped",
+                        f"budget spent: {label} n={n} lanes={lanes} skipped",
                         file=sys.stderr,
                         flush=True,
                     )
                     continue
-                run = lambda: lagrax.sweep_periods(L, a, chunk_size=width, **kw)
+                run = lambda: lagrax.sweep_periods(L, a, lanes=lanes, **kw)
                 t0 = time.perf_counter()
                 jax.block_until_ready(run())
                 compile_s = time.perf_counter() - t0
                 res, sec = _best(run, args.repeats)
                 rows.append(
                     _row(
-                        f"lagrax {label} n={n} width={width} on {device}",
+                        f"lagrax {label} n={n} lanes={lanes} on {device}",
                         res.periods,
                         exact,
                         sec,
@@ -519,7 +519,7 @@ def main():
         default=[10_000, 100_000, 1_000_000],
         help="amplitudes per --gpu sweep (a small one checks the mode on a CPU)",
     )
-    p.add_argument("--gpu-widths", type=int, nargs="+", default=[65536, 262144])
+    p.add_argument("--gpu-lanes", type=int, nargs="+", default=[65536, 262144])
     p.add_argument(
         "--budget", type=float, default=float("inf"), help="--gpu: seconds, then stop"
     )

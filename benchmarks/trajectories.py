@@ -492,7 +492,7 @@ def _lagrax_methods(quick, n=2, width=256):
                 atol=tol,
                 max_steps=1 << 16,
                 throw=False,
-                width=width,
+                lanes=width,
             )
             q1, qdot1 = (x[:, -1] for x in sol.ys)
             return q1, qdot1, sol.stats["num_steps"]

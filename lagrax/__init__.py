@@ -11,14 +11,16 @@ and integrates them, one state or many at once.
     `vector_field`; from particle positions and constraints: `particle_lagrangian`,
     `generalized_force`, `dissipation_force`, `degrees_of_freedom`,
     `check_embedding`; a change of coordinates: `reparametrize`.
-- Trajectories: `simulate` (diffrax), `simulate_batch` (many releases at once), or
-    `LagrangianTerm` with the variational integrators `VariationalMidpoint`,
-    `GaussLegendre4`, `GaussLegendre6`.
-- Periods of one-coordinate oscillations: `period`, `sweep_periods` (many amplitudes
-    at once, a `SweepResult`), the solver `Taylor`, the oracle `quadrature_period`
+- Trajectories: `simulate` (one release, through `diffrax.diffeqsolve`),
+    `simulate_batch` (many releases in one compiled loop), or `LagrangianTerm` with
+    the variational integrators `VariationalMidpoint`, `GaussLegendre4`,
+    `GaussLegendre6`; the Taylor integrator `Taylor` is a diffrax solver.
+- Periods of one-coordinate oscillations: `period` (one amplitude),
+    `sweep_periods` (many at once, a `SweepResult`), the oracle `quadrature_period`
     (a `QuadratureResult`).
-- Failure statuses: `status_message`, `status_code`, `status_result`,
-    `STATUS_CODES`, `RESULTS`.
+- Statuses of a period: the enumeration `PeriodStatus` (as `diffrax.RESULTS` is
+    for a solve) and its int codes, as `SweepResult.status` holds them:
+    `STATUS_CODES`, `status_code`, `status_member`, `status_message`.
 - `lagrax.systems`: ready-made Lagrangians with their exact references.
 
 lagrax never changes JAX's configuration: for float64, where accuracy is claimed, call
@@ -50,13 +52,13 @@ from ._period.quadrature import (
 )
 from ._period.sweep import sweep_periods as sweep_periods, SweepResult as SweepResult
 from ._results import (
-    RESULTS as RESULTS,
+    PeriodStatus as PeriodStatus,
     status_code as status_code,
     STATUS_CODES as STATUS_CODES,
+    status_member as status_member,
     status_message as status_message,
-    status_result as status_result,
 )
-from ._taylor.solver import Taylor as Taylor
+from ._taylor.taylor import Taylor as Taylor
 from ._trajectory.batch import simulate_batch as simulate_batch
 from ._trajectory.gauss_legendre import (
     GaussLegendre4 as GaussLegendre4,

@@ -189,8 +189,8 @@ def lane_count(
 ):
     """The lanes per device of a compiled loop: `value` checked, or by default `cpu`
     on a CPU and, on an accelerator, enough for every item of a device's share up
-    to `accelerator` (a GPU needs 10^4 to 10^5 lanes in flight; 256 leaves it
-    mostly idle)."""
+    to `accelerator` (a GPU needs far more lanes in flight than a CPU core: the
+    CPU's default leaves it mostly idle)."""
     if value is not None:
         return positive_int(value, name)
     if devices[0].platform == "cpu":

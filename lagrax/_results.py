@@ -1,37 +1,5 @@
-r"""What became of a period: one status enumeration for `period`, `sweep_periods` and
-`quadrature_period`.
-
-`RESULTS` is an `equinox.Enumeration` (as `diffrax.RESULTS`): each member's value is
-its own message, and `RESULTS.<member>.error_if(x, pred)` raises that message under
-`jit` as well as eagerly. Arrays of statuses (`SweepResult.status`,
-`QuadratureResult.status`, the CLI's CSV/NPZ) hold the *int view*, the codes below.
-That mapping is fixed; new members only ever go at the end.
-
-| code | member | meaning |
-| --- | --- | --- |
-| 0 | `success` | the period is trustworthy to about the tolerances |
-| 1 | `not_oscillating` | released at an equilibrium, the coordinate ran away, or no turning point before `t_max` |
-| 2 | `max_steps` | `max_steps` reached before the next turning point |
-| 3 | `singular_mass` | mass matrix singular or indefinite at release or on the path |
-| 4 | `root_find_failed` | the turning point could not be located |
-| 5 | `energy_drift` | energy not conserved to `energy_tol`: the trajectory is garbage |
-| 6 | `solver_failed` | other ODE solver failure (collapsed step size, non-finite state, a Taylor step across a switch of the acceleration) |
-| 7 | `nonfinite_input` | `q0` is NaN or infinite |
-| 8 | `unresolved` | (quadrature) too close to an unstable equilibrium for this precision |
-| 9 | `not_natural` | (quadrature) `L` is not $\frac12 m(q)\dot q^2 - V(q)$ |
-| 10 | `escapes` | (quadrature) no turning point ahead: the motion is unbounded |
-| 11 | `nonfinite_period` | (quadrature) the period came out non-finite |
-| 12 | `tolerance_not_met` | the per-lane error estimate exceeds what `rtol` promises |
-| 13 | `coordinate_singularity` | the path runs into a coordinate singularity |
-| 14 | `not_symmetric` | `method="quarter"` on a well that is not mirror-symmetric |
-
-`quadrature_period` reports a release at an equilibrium as 1, like the integrators;
-a motion with no turning point ahead gets its own code 10 there, because quadrature can
-tell it apart from other ways of not oscillating (the integrators report a runaway as
-1). Convert with `status_code(member)` (member to int) and `status_result(code)` (int
-to member); `STATUS_CODES` maps each code to its member's name and `status_message`
-gives its message.
-"""  # noqa: E501
+r"""What became of a period: one status enumeration, `PeriodStatus`, for `period`,
+`sweep_periods` and `quadrature_period`, and its int codes."""
 
 import equinox as eqx
 import jax
@@ -41,7 +9,41 @@ import numpy as np
 from ._checks import is_concrete
 
 
-class RESULTS(eqx.Enumeration):
+class PeriodStatus(eqx.Enumeration):
+    r"""The statuses of a period (`period`, `sweep_periods`, `quadrature_period`):
+    an `equinox.Enumeration`, as `diffrax.RESULTS` is for a diffrax solve, but its
+    own members. Each member's value is its message, and
+    `PeriodStatus.<member>.error_if(x, pred)` raises that message under `jit` as well
+    as eagerly. Arrays of statuses (`SweepResult.status`, `QuadratureResult.status`,
+    the CLI's CSV/NPZ) hold the int codes below: `status_code(member)` gives a
+    member's code, `status_member(code)` a code's member, `status_message(code)` its
+    message, and `STATUS_CODES` maps each code to its member's name. The codes are
+    fixed; new members only ever go at the end.
+
+    | code | member | meaning |
+    | --- | --- | --- |
+    | 0 | `success` | the period is trustworthy to about the tolerances |
+    | 1 | `not_oscillating` | released at an equilibrium, the coordinate ran away, or no turning point before `t_max` |
+    | 2 | `max_steps` | `max_steps` reached before the next turning point |
+    | 3 | `singular_mass` | mass matrix singular or indefinite at release or on the path |
+    | 4 | `root_find_failed` | the turning point could not be located |
+    | 5 | `energy_drift` | energy not conserved to `energy_tol`: the trajectory is garbage |
+    | 6 | `solver_failed` | other ODE solver failure (collapsed step size, non-finite state, a Taylor step across a switch of the acceleration) |
+    | 7 | `nonfinite_input` | `q0` is NaN or infinite |
+    | 8 | `unresolved` | (quadrature) too close to an unstable equilibrium for this precision |
+    | 9 | `not_natural` | (quadrature) `L` is not $\frac12 m(q)\dot q^2 - V(q)$ |
+    | 10 | `escapes` | (quadrature) no turning point ahead: the motion is unbounded |
+    | 11 | `nonfinite_period` | (quadrature) the period came out non-finite |
+    | 12 | `tolerance_not_met` | the per-lane error estimate exceeds what `rtol` promises |
+    | 13 | `coordinate_singularity` | the path runs into a coordinate singularity |
+    | 14 | `not_symmetric` | `method="quarter"` on a well that is not mirror-symmetric |
+
+    `quadrature_period` reports a release at an equilibrium as 1, like the
+    integrators; a motion with no turning point ahead gets its own code 10 there,
+    because quadrature can tell it apart from other ways of not oscillating (the
+    integrators report a runaway as 1).
+    """  # noqa: E501
+
     success = "success"
     not_oscillating = (
         "does not oscillate: released at rest at an equilibrium (zero acceleration, "
@@ -113,7 +115,7 @@ class RESULTS(eqx.Enumeration):
     )
 
 
-#: The int view of `RESULTS`: `{code: member name}`, e.g. `STATUS_CODES[3]` is
+#: The int view of `PeriodStatus`: `{code: member name}`, e.g. `STATUS_CODES[3]` is
 #: `"singular_mass"`. Fixed: new members only ever go at the end.
 STATUS_CODES = {
     0: "success",
@@ -132,8 +134,8 @@ STATUS_CODES = {
     13: "coordinate_singularity",
     14: "not_symmetric",
 }
-_MEMBERS = [getattr(RESULTS, name) for name in STATUS_CODES.values()]
-assert len(_MEMBERS) == len(RESULTS), "every member of RESULTS needs its code"
+_MEMBERS = [getattr(PeriodStatus, name) for name in STATUS_CODES.values()]
+assert len(_MEMBERS) == len(PeriodStatus), "every member of PeriodStatus needs its code"
 
 _CODE = {name: code for code, name in STATUS_CODES.items()}
 SUCCESS = _CODE["success"]
@@ -153,8 +155,8 @@ COORDINATE_SINGULARITY = _CODE["coordinate_singularity"]
 NOT_SYMMETRIC = _CODE["not_symmetric"]
 
 
-def status_code(result: RESULTS):
-    """The int view of a `RESULTS` member (an int32 array under `jit`/`vmap`)."""
+def status_code(result: PeriodStatus):
+    """The int view of a `PeriodStatus` member (an int32 array under `jit`/`vmap`)."""
     # By the enumeration's public comparisons: its members' own int values are
     # equinox's business.
     return jnp.select(
@@ -164,8 +166,8 @@ def status_code(result: RESULTS):
     )
 
 
-def status_result(code) -> RESULTS:
-    """The `RESULTS` member of an int status code (or an array of them, under `jit`
+def status_member(code) -> PeriodStatus:
+    """The `PeriodStatus` member of an int status code (or an array of them, under `jit`
     too, where an unknown code reads as `success`).
 
     **Raises:** `ValueError` for a concrete code that is not one of `STATUS_CODES`.
@@ -180,10 +182,10 @@ def status_result(code) -> RESULTS:
     def member(c):
         out = _MEMBERS[0]
         for k, item in enumerate(_MEMBERS[1:], 1):
-            out = RESULTS.where(c == k, item, out)
+            out = PeriodStatus.where(c == k, item, out)
         return out
 
-    for _ in range(code.ndim):  # (`RESULTS.where` takes a scalar predicate)
+    for _ in range(code.ndim):  # (`PeriodStatus.where` takes a scalar predicate)
         member = jax.vmap(member)
     return member(code)
 
@@ -192,8 +194,8 @@ def status_message(code) -> str:
     r"""The meaning of a status code of `period`, `sweep_periods` or
     `quadrature_period`, as one line of text.
 
-    The codes are the int view of `lagrax.RESULTS` (the table is in the docstring of
-    `lagrax.RESULTS`'s module and in `lagrax.STATUS_CODES`).
+    The codes are the int view of `lagrax.PeriodStatus` (its docstring has the
+    table; `lagrax.STATUS_CODES` maps codes to names).
 
     **Arguments:** `code`: an int (or integer scalar array).
 
@@ -211,7 +213,7 @@ def status_message(code) -> str:
             f"`code` must be one of the integer status codes {sorted(STATUS_CODES)}; "
             f"got {code!r}."
         )
-    return RESULTS[status_result(np.int32(key))]
+    return PeriodStatus[status_member(np.int32(key))]
 
 
 def first_of(*pairs, default):
@@ -228,4 +230,4 @@ def error_if(x, status):
     """
     flat = jnp.ravel(jnp.asarray(status))
     first = flat[jnp.argmax(flat != SUCCESS)]
-    return status_result(first).error_if(x, jnp.any(flat != SUCCESS))
+    return status_member(first).error_if(x, jnp.any(flat != SUCCESS))

@@ -324,9 +324,9 @@ PERIOD += [
         "devices",
     ),
     case(
-        "sweep_periods-progress",
-        lambda: lagrax.sweep_periods(PENDULUM, jnp.ones(1), progress=True),
-        "progress",
+        "sweep_periods-progress_meter",
+        lambda: lagrax.sweep_periods(PENDULUM, jnp.ones(1), progress_meter=print),
+        "progress_meter",
     ),
     case(
         "quadrature_period-nodes-odd",
@@ -365,9 +365,9 @@ for entry, f in (("period", lagrax.period), ("sweep_periods", lagrax.sweep_perio
 for key, n in BAD_COUNTS.items():
     PERIOD.append(
         case(
-            f"sweep_periods-chunk_size-{key}",
-            lambda n=n: lagrax.sweep_periods(PENDULUM, jnp.ones(1), chunk_size=n),
-            "chunk_size",
+            f"sweep_periods-lanes-{key}",
+            lambda n=n: lagrax.sweep_periods(PENDULUM, jnp.ones(1), lanes=n),
+            "lanes",
         )
     )
     PERIOD.append(
@@ -917,9 +917,9 @@ EXACT = [
     ),
     exact(
         "sweep-chunk",
-        lambda: lagrax.sweep_periods(PENDULUM, _one, chunk_size=0),
+        lambda: lagrax.sweep_periods(PENDULUM, _one, lanes=0),
         ValueError,
-        "`chunk_size`",
+        "`lanes`",
     ),
     exact(
         "sweep-euler",

@@ -119,17 +119,17 @@ def test_lanes_default_by_backend():
 
     cpu, gpu = jax.devices("cpu"), (_Accelerator(),)
     kw = dict(cpu=256, accelerator=1 << 17)
-    assert lane_count(None, "width", cpu, 10**6, **kw) == 256
-    assert lane_count(None, "width", gpu, 10**4, **kw) == 10**4
-    assert lane_count(None, "width", gpu, 10**6, **kw) == 1 << 17
-    assert lane_count(7, "width", gpu, 10**6, **kw) == 7
-    with pytest.raises(ValueError, match="`width`"):
-        lane_count(0, "width", cpu, 10, **kw)
+    assert lane_count(None, "lanes", cpu, 10**6, **kw) == 256
+    assert lane_count(None, "lanes", gpu, 10**4, **kw) == 10**4
+    assert lane_count(None, "lanes", gpu, 10**6, **kw) == 1 << 17
+    assert lane_count(7, "lanes", gpu, 10**6, **kw) == 7
+    with pytest.raises(ValueError, match="`lanes`"):
+        lane_count(0, "lanes", cpu, 10, **kw)
 
 
 def test_sweep_runs_its_default_lanes_on_a_cpu():
     res = lagrax.sweep_periods(
         pendulum.lagrangian(), jnp.linspace(0.1, 1.0, 3), method="quarter"
     )
-    assert res.chunk_size == 256
+    assert res.lanes == 256
     assert np.isfinite(np.asarray(res.periods)).all()

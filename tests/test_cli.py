@@ -178,7 +178,7 @@ def test_sweep_writes_table_csv_and_two_panel_chart(capsys, tmp_path, umask_022)
     out_csv = tmp_path / "res.csv"
     chart = tmp_path / "chart.png"
     svg = tmp_path / "chart.svg"
-    argv = ["sweep", "pendulum", "--count", "40", "--chunk-size", "16", "--rows", "5"]
+    argv = ["sweep", "pendulum", "--count", "40", "--lanes", "16", "--rows", "5"]
     rc, out, err = run(capsys, *argv, "--out", out_csv, "--plot", chart)
     assert rc == 0, err
     lines = out.splitlines()
@@ -248,7 +248,7 @@ def test_chart_marks_failures_and_plots_the_error(tmp_path):
 def test_user_module_by_attr_and_by_path_with_and_without_param(
     capsys, user_module, tmp_path
 ):
-    common = ["--min", "0.5", "--max", "2.5", "--count", "12", "--chunk-size", "4"]
+    common = ["--min", "0.5", "--max", "2.5", "--count", "12", "--lanes", "4"]
     results = {}
     for target, extra in [
         ("my_systems:L", []),
@@ -294,7 +294,7 @@ def test_quadrature_reference_agrees_with_the_exact_period(
     out = tmp_path / "q.csv"
     rc, stdout, err = run(
         capsys, "sweep", "my_systems:pendulum", "--param", "g=9.81", "--min", "0.05",
-        "--max", "3.0", "--count", "24", "--chunk-size", "8", "--method", "quarter",
+        "--max", "3.0", "--count", "24", "--lanes", "8", "--method", "quarter",
         "--reference", "quadrature", "--out", out, "--quiet",
     )  # fmt: skip
     assert rc == 0, err
@@ -330,7 +330,7 @@ def test_a_damped_system_is_refused_by_name(capsys):
 def test_builtin_without_exact_period_uses_quadrature_on_request(capsys, tmp_path):
     out = tmp_path / "w.npz"
     rc, stdout, err = run(
-        capsys, "sweep", "asymmetric_well", "--count", "8", "--chunk-size", "4",
+        capsys, "sweep", "asymmetric_well", "--count", "8", "--lanes", "4",
         "--reference", "quadrature", "--out", out, "--quiet",
     )  # fmt: skip
     assert rc == 0, err
@@ -346,7 +346,7 @@ def test_failures_exit_1_and_are_named(capsys, tmp_path, user_module):
     # (The shape and options of the user-module sweeps above: their compiled program.)
     rc, out, err = run(
         capsys, "sweep", "my_systems:L", "--min", "0", "--max", "1", "--count", "12",
-        "--chunk-size", "4", "--method", "quarter", "--quiet",
+        "--lanes", "4", "--method", "quarter", "--quiet",
     )  # fmt: skip
     assert rc == 1
     assert "1 failed" in out
@@ -360,7 +360,7 @@ def test_interrupted_sweep_leaves_no_file_and_resumes(
 ):
     out_npz = tmp_path / "res.npz"
     argv = [
-        "sweep", "pendulum", "--count", "100", "--chunk-size", "8", "--devices", "1",
+        "sweep", "pendulum", "--count", "100", "--lanes", "8", "--devices", "1",
         "--out", out_npz,
     ]  # fmt: skip
     real = lagrax.sweep_periods
@@ -413,7 +413,7 @@ def test_sweep_with_the_taylor_solver(capsys, tmp_path):
     # (The shape of the table's sweep above, which the default runs with Taylor too:
     # its compiled program.)
     out_csv = tmp_path / "taylor.csv"
-    argv = ["sweep", "pendulum", "--count", "40", "--chunk-size", "16", "--quiet"]
+    argv = ["sweep", "pendulum", "--count", "40", "--lanes", "16", "--quiet"]
     rc, out, err = run(capsys, *argv, "--solver", "taylor", "--out", out_csv)
     assert rc == 0, err
     data = np.genfromtxt(out_csv, delimiter=",", names=True, dtype=None, encoding=None)

@@ -158,7 +158,7 @@ def test_factory_with_a_required_parameter_runs_when_given(capsys, user_dir, tmp
     out = tmp_path / "k.npz"
     rc, _, err = run(
         capsys, "sweep", "cli_usage_systems:needs_k", "--param", "k=4", "--min", "0.1",
-        "--max", "1", "--count", "4", "--chunk-size", "4", "--out", out, "--quiet",
+        "--max", "1", "--count", "4", "--lanes", "4", "--out", out, "--quiet",
     )  # fmt: skip
     assert rc == 0, err
     with np.load(out) as f:

@@ -63,7 +63,7 @@ SWEEP = textwrap.dedent(
     amplitude = np.linspace(0.05, 3.0, 30)
     q0 = np.concatenate([[0.0], amplitude, [np.nan]])
     res = lagrax.sweep_periods(
-        pendulum.lagrangian(), jnp.asarray(q0), method="quarter", chunk_size=4
+        pendulum.lagrangian(), jnp.asarray(q0), method="quarter", lanes=4
     )
     fields = dict(
         periods=np.asarray(res.periods),  # fully addressable on every process
@@ -108,7 +108,7 @@ def test_two_processes_each_get_the_one_process_result_bit_for_bit(tmp_path):
     files = [tmp_path / f"p{i}.npz" for i in range(2)]
     single = tmp_path / "single.npz"
     # Two processes of one device each, and one process of two devices: the same
-    # global devices, the same chunking.
+    # global devices, the same lanes.
     procs = [start(SWEEP, 2, i, port, files[i]) for i in range(2)]
     procs.append(start(SWEEP, 1, 0, 0, single, devices=2))
     for proc in procs:
@@ -156,7 +156,7 @@ FOREVER = textwrap.dedent(
     L = pendulum.lagrangian()
     q0 = jnp.linspace(0.05, 3.0, 64)
     while True:  # until the other process is gone
-        lagrax.sweep_periods(L, q0, method="quarter", chunk_size=4)
+        lagrax.sweep_periods(L, q0, method="quarter", lanes=4)
         print("swept", flush=True)
     """
 )
@@ -189,7 +189,7 @@ def test_a_killed_process_makes_the_other_exit_with_an_error(victim):
 
 def cli(port, pid, out, cache, *extra):
     return [
-        "-m", "lagrax", "sweep", "pendulum", "--count", "400", "--chunk-size", "2",
+        "-m", "lagrax", "sweep", "pendulum", "--count", "400", "--lanes", "2",
         "--devices", "1", "--distributed", "--coordinator", f"127.0.0.1:{port}",
         "--num-processes", "2", "--process-id", str(pid), "--timeout", "20",
         "--out", str(out), *extra,

@@ -125,7 +125,7 @@ def test_what_determines_the_program_changes_the_prekey(prekeys):
     others = [
         prekeys(cycloid.lagrangian(), Q0 * 0.3),  # another body
         prekeys(pendulum.lagrangian(), Q0, method="half"),
-        prekeys(pendulum.lagrangian(), Q0, chunk_size=4),
+        prekeys(pendulum.lagrangian(), Q0, lanes=4),
         prekeys(pendulum.lagrangian(), Q0, error_estimate=True),
         prekeys(pendulum.lagrangian(), Q0, solver=dfx.Dopri5()),
         prekeys(pendulum.lagrangian(), Q0, max_steps=100),
@@ -324,20 +324,20 @@ def test_the_choice_of_stepper_is_kept_for_later_processes(
     monkeypatch, tmp_path, without_jax_cache
 ):
     from lagrax._jaxpr.canonical import canonical_lagrangian
-    from lagrax._period import reuse
+    from lagrax._period import solver as period_solver
 
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     decided = []
-    resolve = reuse._resolve
+    resolve = period_solver._resolve
     monkeypatch.setattr(
-        reuse, "_resolve", lambda *a: [decided.append(a[0]), resolve(*a)][1]
+        period_solver, "_resolve", lambda *a: [decided.append(a[0]), resolve(*a)][1]
     )
     solver = lagrax.Taylor(fallback=dfx.Dopri8())
 
     def choose(V):
-        monkeypatch.setattr(reuse, "_RESOLVED", collections.OrderedDict())
+        monkeypatch.setattr(period_solver, "_RESOLVED", collections.OrderedDict())
         L_c, consts = canonical_lagrangian(_potential(V), np.float64)
-        return reuse.resolved_solver(L_c, consts, solver, np.float64)
+        return period_solver.resolved_solver(L_c, consts, solver, np.float64)
 
     # cos has a Taylor recurrence, erf has none: decided once each, then read.
     assert choose(jnp.cos) == lagrax.Taylor() and len(decided) == 1
@@ -393,7 +393,7 @@ def test_simulate_batch_a_rebuilt_L_reuses_the_program_and_a_later_process_its_p
     q0 = jnp.asarray([[0.3, -0.2], [0.9, 0.4], [-0.6, 0.1]])
     run = lambda g, t1, **kw: lagrax.simulate_batch(
         _double_pendulum(g), q0, jnp.zeros_like(q0), 0.0, t1,
-        solver=lagrax.Taylor(order=8), rtol=1e-12, atol=1e-12, width=2, **kw,
+        solver=lagrax.Taylor(order=8), rtol=1e-12, atol=1e-12, lanes=2, **kw,
     )  # fmt: skip
     a = run(1.0, 2.0)
     assert loads == [False] and len(_names(folder, ".key")) == 1

@@ -3,7 +3,7 @@
 What tests/test_period.py and tests/test_cli.py already cover is not repeated here
 (a NaN and an equilibrium lane next to good ones; a KeyboardInterrupt between blocks of
 a first run; bad arguments of the common kinds). Added here: every failure kind in one
-batch with the others bit-identical, chunk-size independence bit for bit (failures
+batch with the others bit-identical, lane-count independence bit for bit (failures
 included), an interrupted rerun that keeps the earlier complete output and computes a
 damaged checkpoint again, an interrupt inside the final write, a sweep killed with
 SIGKILL and resumed, failing amplitudes counted by the command line (exit 1), and the
@@ -17,6 +17,7 @@ import sys
 import time
 
 import diffrax as dfx
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -50,7 +51,7 @@ L = _pendulum_with_a_singular_point
 # tests/test_taylor_solver.py.
 OPTIONS = dict(rtol=1e-10, atol=1e-10, max_steps=64, solver=dfx.Dopri8())
 # 12 good and 4 bad lanes: 16, the size of the pieces a sweep with `progress` runs in
-# at chunk_size=4, so that every sweep below of 16 lanes at chunk_size=4 runs one
+# at lanes=4, so that every sweep below of 16 lanes at lanes=4 runs one
 # compiled program.
 GOOD = np.array([0.3, 1.0, 2.0, 2.9, 0.7, 1.5, -2.5, 0.1, -1.2, 2.5, -0.5, 1.8])
 # Good lanes that take the BAD lanes' places in a sweep without failures.
@@ -83,14 +84,14 @@ def _arrays(res):
 @pytest.fixture(scope="module")
 def mixed_sweep():
     q0, is_bad = _mixed()
-    res = lagrax.sweep_periods(L, jnp.asarray(q0), chunk_size=4, **OPTIONS)
+    res = lagrax.sweep_periods(L, jnp.asarray(q0), lanes=4, **OPTIONS)
     return q0, is_bad, res
 
 
 def test_failing_lanes_counted_and_the_others_bit_identical(mixed_sweep):
     q0, is_bad, mixed = mixed_sweep
     clean = lagrax.sweep_periods(
-        L, jnp.asarray(np.concatenate([GOOD, MORE])), chunk_size=4, **OPTIONS
+        L, jnp.asarray(np.concatenate([GOOD, MORE])), lanes=4, **OPTIONS
     )
     got = _arrays(mixed)
     assert list(got["status"][is_bad]) == list(BAD.values())
@@ -109,35 +110,33 @@ def test_failing_lanes_counted_and_the_others_bit_identical(mixed_sweep):
     )
 
 
-def test_results_independent_of_chunk_size_and_order(mixed_sweep):
+def test_results_independent_of_lanes_and_order(mixed_sweep):
     q0, is_bad, ref = mixed_sweep
     ref = _arrays(ref)
     # Same chunk size, other order (so other chunk members): bit for bit.
     got = _arrays(
-        lagrax.sweep_periods(L, jnp.asarray(q0), chunk_size=4, sort=False, **OPTIONS)
+        lagrax.sweep_periods(L, jnp.asarray(q0), lanes=4, sort=False, **OPTIONS)
     )
     for k in ref:
         np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
     # Another chunk size: see below.
-    _check_other_chunk_size(q0, is_bad, ref, 3)
+    _check_other_lanes(q0, is_bad, ref, 3)
 
 
 # One lane per chunk: a program of its own (chunk size 3 above, every time).
 @pytest.mark.slow
 def test_results_with_one_lane_per_chunk(mixed_sweep):
     q0, is_bad, ref = mixed_sweep
-    _check_other_chunk_size(q0, is_bad, _arrays(ref), 1)
+    _check_other_lanes(q0, is_bad, _arrays(ref), 1)
 
 
-def _check_other_chunk_size(q0, is_bad, ref, chunk_size):
+def _check_other_lanes(q0, is_bad, ref, lanes):
     # Other chunk sizes: the same statuses, the same periods to well within the
     # tolerance, but not bit for bit. XLA vectorizes a batch of 3 or 1 differently
     # from one of 4 (a few ulps in the vector field), and an adaptive solve can turn
-    # that into one step more or less: measured 9 ulps at chunk_size=3 and 2e-12
-    # relative (22 steps instead of 24) at chunk_size=1, with rtol=1e-10.
-    got = _arrays(
-        lagrax.sweep_periods(L, jnp.asarray(q0), chunk_size=chunk_size, **OPTIONS)
-    )
+    # that into one step more or less: measured 9 ulps at lanes=3 and 2e-12
+    # relative (22 steps instead of 24) at lanes=1, with rtol=1e-10.
+    got = _arrays(lagrax.sweep_periods(L, jnp.asarray(q0), lanes=lanes, **OPTIONS))
     np.testing.assert_array_equal(got["status"], ref["status"])
     np.testing.assert_allclose(
         got["periods"][~is_bad], ref["periods"][~is_bad], rtol=1e-10, atol=0
@@ -153,24 +152,39 @@ def test_period_failures_raise_with_the_status(mixed_sweep):
         lagrax.period(L, 10.0, **OPTIONS)
 
 
+class _Recorder(dfx.AbstractProgressMeter):
+    """A progress meter that keeps what it is told: "init", fractions, "close"."""
+
+    seen: list = eqx.field(static=True)
+
+    def init(self):
+        self.seen.append("init")
+
+    def step(self, state, progress):
+        self.seen.append(float(progress))
+
+    def close(self, state):
+        self.seen.append("close")
+
+
 def test_progress_reported_as_the_sweep_goes(mixed_sweep):
     q0, _, ref = mixed_sweep
     seen = []
     res = lagrax.sweep_periods(
-        L, jnp.asarray(q0), chunk_size=4, progress=lambda *a: seen.append(a), **OPTIONS
+        L, jnp.asarray(q0), lanes=4, progress_meter=_Recorder(seen), **OPTIONS
     )
-    assert seen[-1] == (16, 16)
+    assert seen == ["init", 1.0, "close"]
     np.testing.assert_array_equal(res.status, ref.status)
-    # A bigger batch is reported in pieces, counts increasing to the total (pieces
-    # of the size the call above ran in: its compiled program again).
+    # A bigger batch is reported in pieces, fractions increasing to 1 (pieces of
+    # the size the call above ran in: its compiled program again).
     seen = []
     many = jnp.asarray(np.tile(q0, 12))
     res = lagrax.sweep_periods(
-        L, many, chunk_size=4, progress=lambda *a: seen.append(a), **OPTIONS
+        L, many, lanes=4, progress_meter=_Recorder(seen), **OPTIONS
     )
-    done = [d for d, _ in seen]
-    assert len(seen) > 1 and done == sorted(done) and seen[-1] == (192, 192)
-    assert all(total == 192 for _, total in seen)
+    done = seen[1:-1]
+    assert seen[0] == "init" and seen[-1] == "close"
+    assert len(done) > 1 and done == sorted(done) and done[-1] == 1.0
     np.testing.assert_array_equal(res.status, np.tile(ref.status, 12))
     # Sorted over the whole sweep, run in pieces, returned in input order: bit for bit.
     np.testing.assert_array_equal(res.periods, np.tile(ref.periods, 12))
@@ -179,7 +193,7 @@ def test_progress_reported_as_the_sweep_goes(mixed_sweep):
 # ----------------------------------------------------------------- command line
 
 # Four blocks of 32 amplitudes (four chunks of 8): one compiled shape.
-ARGV = ["sweep", "pendulum", "--count", "128", "--chunk-size", "8", "--quiet"]
+ARGV = ["sweep", "pendulum", "--count", "128", "--lanes", "8", "--quiet"]
 
 
 def _run(capsys, *argv):
@@ -365,7 +379,7 @@ def test_failing_amplitudes_counted_and_exit_1(
 @pytest.mark.parametrize(
     "argv",
     [
-        ["sweep", "--chunk-size", "0"],
+        ["sweep", "--lanes", "0"],
         ["sweep", "--rows", "-1"],
         ["sweep", "--atol", "nan"],
         ["sweep", "--rtol", "inf"],

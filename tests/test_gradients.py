@@ -41,7 +41,7 @@ def periods(a):
         rtol=1e-12,
         atol=1e-12,
         method="matched",
-        chunk_size=3,
+        lanes=3,
         error_estimate=False,
     ).periods
 

@@ -12,7 +12,7 @@ from .helpers import counting_compiles
 
 
 # One Lagrangian object per system, shared by all tests: the compiled sweep is cached
-# per (L, solver, method, chunk_size) and shapes, so sharing keeps the suite's compile
+# per (L, solver, method, lanes) and shapes, so sharing keeps the suite's compile
 # time down. The pendulum's "quarter" sweeps below are of N amplitudes: one program
 # (more than the 256 lanes of a chunk: lanes that finish take the next amplitudes).
 PENDULUM = pendulum.lagrangian()
@@ -154,8 +154,8 @@ def test_sorted_lanes_return_in_input_order():
     rng = np.random.default_rng(3)
     q0 = rng.permutation(np.concatenate([np.linspace(0.05, 3.0, 40), [0.0]]))
     q0 = jnp.asarray(q0)
-    a = lagrax.sweep_periods(PENDULUM, q0, chunk_size=8)
-    b = lagrax.sweep_periods(PENDULUM, q0, chunk_size=8, sort=False)
+    a = lagrax.sweep_periods(PENDULUM, q0, lanes=8)
+    b = lagrax.sweep_periods(PENDULUM, q0, lanes=8, sort=False)
     pairs = [(a.periods, b.periods), (a.status, b.status), (a.num_steps, b.num_steps)]
     for x, y in pairs:
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
@@ -215,10 +215,10 @@ def test_failed_lane_does_not_change_the_others():
 
 # Chunk sizes and orders, failures included, run every time in tests/test_faults.py.
 @pytest.mark.slow
-def test_chunk_size_and_order_independence():
+def test_lanes_and_order_independence():
     a = jax.random.uniform(jax.random.key(0), (200,), minval=0.1, maxval=3.0)
     big = lagrax.sweep_periods(PENDULUM, a, method="quarter")
-    small = lagrax.sweep_periods(PENDULUM, a, method="quarter", chunk_size=64)
+    small = lagrax.sweep_periods(PENDULUM, a, method="quarter", lanes=64)
     np.testing.assert_allclose(small.periods, big.periods, rtol=1e-15)
     assert big.lane_steps_executed >= big.lane_steps_useful
     # The result comes back in the input order.

@@ -13,9 +13,9 @@ import lagrax
 from lagrax._cache import executables
 from lagrax._jaxpr.canonical import canonical_lagrangian
 from lagrax._period import sweep as sweep_module, tier
-from lagrax._period.mechanics import AutodiffMechanics, CompactMechanics
+from lagrax._period.quantities import AutodiffMechanics, CompactMechanics
 from lagrax._period.units import Release
-from lagrax._stepper.taylor import TaylorStepper
+from lagrax._taylor.stepper import TaylorStepper
 from lagrax.systems import asymmetric_well, cycloid, pendulum, rectilinear
 
 

@@ -36,12 +36,12 @@ FIXED = {
 def test_int_view_is_fixed():
     assert lagrax.STATUS_CODES == FIXED
     for code, name in FIXED.items():
-        member = getattr(lagrax.RESULTS, name)
+        member = getattr(lagrax.PeriodStatus, name)
         assert int(lagrax.status_code(member)) == code
-        back = lagrax.status_result(code)
-        assert isinstance(back, lagrax.RESULTS)
+        back = lagrax.status_member(code)
+        assert isinstance(back, lagrax.PeriodStatus)
         assert bool(back == member)
-        assert lagrax.status_message(code) == lagrax.RESULTS[member]
+        assert lagrax.status_message(code) == lagrax.PeriodStatus[member]
     # The old per-module names are the same codes.
     period, quadrature = lagrax._period.period, lagrax._period.quadrature
     assert period.SINGULAR_MASS == quadrature.SINGULAR_MASS == 3

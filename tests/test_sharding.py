@@ -15,9 +15,9 @@ SCRIPT = textwrap.dedent(
     assert len(jax.devices()) == 4, jax.devices()
     L = pendulum.lagrangian()
     a = jnp.linspace(0.05, 3.0, 50)
-    one = lagrax.sweep_periods(L, a, method="quarter", chunk_size=8,
+    one = lagrax.sweep_periods(L, a, method="quarter", lanes=8,
                                devices=jax.devices()[:1])
-    four = lagrax.sweep_periods(L, a, method="quarter", chunk_size=8)
+    four = lagrax.sweep_periods(L, a, method="quarter", lanes=8)
     assert four.num_devices == 4 and one.num_devices == 1
     np.testing.assert_array_equal(np.asarray(four.status), 0)
     np.testing.assert_allclose(four.periods, one.periods, rtol=1e-15, atol=0)
@@ -26,9 +26,9 @@ SCRIPT = textwrap.dedent(
     # the lanes the bound cannot vouch for, compacted within each device): the same
     # periods, statuses and steps as one device, lane by lane.
     b = jnp.concatenate([a, jnp.array([jnp.nan])])  # 51 lanes: 4 devices pad one
-    one = lagrax.sweep_periods(L, b, chunk_size=8, rtol=1e-15, atol=1e-15,
+    one = lagrax.sweep_periods(L, b, lanes=8, rtol=1e-15, atol=1e-15,
                                devices=jax.devices()[:1])
-    four = lagrax.sweep_periods(L, b, chunk_size=8, rtol=1e-15, atol=1e-15)
+    four = lagrax.sweep_periods(L, b, lanes=8, rtol=1e-15, atol=1e-15)
     for k in ("periods", "status", "num_steps"):
         np.testing.assert_array_equal(np.asarray(getattr(four, k)),
                                       np.asarray(getattr(one, k)), err_msg=k)
@@ -36,7 +36,7 @@ SCRIPT = textwrap.dedent(
     np.testing.assert_allclose(four.error_estimate, one.error_estimate, rtol=1e-12)
     # Gradients through the sharded sweep: the one-device values.
     f = lambda devs: jax.grad(lambda q: jnp.sum(lagrax.sweep_periods(
-        L, q, method="quarter", chunk_size=8, devices=devs).periods))(a[:6])
+        L, q, method="quarter", lanes=8, devices=devs).periods))(a[:6])
     np.testing.assert_allclose(f(jax.devices()), f(jax.devices()[:1]), rtol=1e-13)
     print("OK", float(jnp.max(jnp.abs(four.periods / one.periods - 1))))
     """
@@ -57,8 +57,8 @@ SMALL = textwrap.dedent(
     b = jnp.array([0.05, 0.7, 1.4, jnp.nan, 2.1, 2.8, 3.0])
     # rtol 1e-15: the bound cannot vouch for every lane, so the second pass runs.
     tol = dict(rtol=1e-15, atol=1e-15)
-    one = lagrax.sweep_periods(L, b, chunk_size=2, devices=jax.devices()[:1], **tol)
-    two = lagrax.sweep_periods(L, b, chunk_size=2, **tol)
+    one = lagrax.sweep_periods(L, b, lanes=2, devices=jax.devices()[:1], **tol)
+    two = lagrax.sweep_periods(L, b, lanes=2, **tol)
     assert two.num_devices == 2 and one.num_devices == 1
     for k in ("periods", "status", "num_steps"):
         np.testing.assert_array_equal(np.asarray(getattr(two, k)),

@@ -31,7 +31,7 @@ def test_refilling_lanes_per_release_spans_and_directions():
     v0 = rng.uniform(-1, 1, (7, 2))
     t1 = np.array([1.0, 5.0, 0.5, 9.0, -2.0, 3.0, -7.5])
     sol = lagrax.simulate_batch(
-        oscillator, q0, v0, 0.0, t1, solver=TAYLOR, rtol=1e-13, atol=1e-13, width=3
+        oscillator, q0, v0, 0.0, t1, solver=TAYLOR, rtol=1e-13, atol=1e-13, lanes=3
     )
     assert sol.ys[0].shape == (7, 1, 2) and sol.ts.shape == (7, 1)
     assert np.all(np.asarray(sol.result == dfx.RESULTS.successful))
@@ -247,7 +247,7 @@ def test_compact_tier_equals_the_specialized_program(monkeypatch):
     q0 = np.random.default_rng(1).uniform(-1, 1, (5, 2))
     run = lambda g: lagrax.simulate_batch(
         _double_pendulum(g), q0, np.zeros_like(q0), 0.0, 2.0, solver=TAYLOR,
-        rtol=1e-12, atol=1e-12, width=4,
+        rtol=1e-12, atol=1e-12, lanes=4,
     )  # fmt: skip
     states = lambda sol: np.concatenate([sol.ys[0][:, -1], sol.ys[1][:, -1]], 1)
     monkeypatch.setenv("LAGRAX_COMPACT", "0")

@@ -122,7 +122,7 @@ def test_period_kernel_never_a_wrong_period_across_a_switch(method):
         ok = status[i] == 0
         assert not ok or abs(T[i] / _kinked_period(q0[i], c) - 1) < 1e-11, (i, T[i])
     # (matched: success with 2e-10 on both before; it fails them now)
-    assert np.all(status[1:] == lagrax.status_code(lagrax.RESULTS.solver_failed))
+    assert np.all(status[1:] == lagrax.status_code(lagrax.PeriodStatus.solver_failed))
     solved = lagrax.sweep_periods(L, q0, solver=dfx.Dopri8(), method=method)
     T8 = np.asarray(solved.periods)
     assert all(abs(T8[i] / _kinked_period(q0[i], c) - 1) < 1e-11 for i in (1, 2))

@@ -19,7 +19,7 @@ AMPS = jnp.linspace(0.05, 3.05, 48)
 
 
 def _sweep(L, q0, **kw):
-    kw = dict(dict(solver=TAYLOR, rtol=1e-13, atol=1e-13, chunk_size=16), **kw)
+    kw = dict(dict(solver=TAYLOR, rtol=1e-13, atol=1e-13, lanes=16), **kw)
     return lagrax.sweep_periods(L, q0, **kw)
 
 
@@ -160,7 +160,7 @@ def test_gradient_with_respect_to_a_parameter():
             solver=TAYLOR,
             method="quarter",
             error_estimate=False,
-            chunk_size=2,
+            lanes=2,
         )
         return jnp.sum(res.periods)
 

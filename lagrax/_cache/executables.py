@@ -12,8 +12,8 @@ serialize_executable`) and loaded in a fraction of a second after:
     batched trajectories), keyed on the text of the lowered program itself (which
     holds everything it computes: a rebuilt Lagrangian with new parameter values that
     reach it as arguments lowers to the same text) and the compile options. A script
-    run again, or a notebook restarted, loads them instead of compiling (~10 s for a
-    first sweep on a CPU core), as heyoka.py's on-disk cache of compiled code does
+    run again, or a notebook restarted, loads them instead of compiling (seconds
+    for a first sweep on a CPU core), as heyoka.py's on-disk cache of compiled code does
     (entries `p*.bin`).
 
 Finding a `cached_call` entry by its lowered text costs the tracing and lowering of
@@ -169,7 +169,7 @@ def call(jitted, static, out_tree, *args):
     `static`: what besides the arguments' shapes determines the program (its
     `repr` must say it all); `out_tree`: the structure of its outputs (a pytree
     definition does not survive pickling: an `equinox.Module`'s holds sentinels)."""
-    if not _applies():
+    if not applies():
         return jitted(*args)
     key = _key(static, args)
     if key not in _LOADED:
@@ -182,7 +182,19 @@ def call(jitted, static, out_tree, *args):
     return _run(_LOADED, key, args, lambda: _compile(key, jitted.lower(*args)))
 
 
-def _applies() -> bool:
+def call_available(static, *args) -> bool:
+    """Whether `call(jitted, static, out_tree, *args)` would run its program
+    without compiling it: compiled or loaded in this process, or on disk."""
+    key = _key(static, args)
+    if key in _LOADED:
+        return True
+    if not applies():
+        return False
+    path = _path(key)
+    return path is not None and os.path.exists(path)
+
+
+def applies() -> bool:
     """Whether executables are kept on disk here: one process (an executable holds
     one process's devices) on a CPU (the only backend they were tested on)."""
     return jax.process_count() == 1 and jax.default_backend() == "cpu"
@@ -217,7 +229,7 @@ def cached_call(jitted, options, *args, n_static=0, origin=None, out_tree=None):
     program = (jitted, static, treedef, tuple(_signature(x) for x in leaves))
     found = None
     if program not in _PROGRAMS:
-        if cache_dir() is None or not _applies():
+        if cache_dir() is None or not applies():
             return jitted(*args)
         found = _Found(jitted, options, args, n_static, out_tree)
         found.prekey = _prekey(jitted, origin, options, static, leaves, treedef)
@@ -240,7 +252,7 @@ def available(jitted, options, *args, n_static=0, origin=None) -> bool:
     program = (jitted, static, treedef, tuple(_signature(x) for x in leaves))
     if program in _PROGRAMS:
         return True
-    if cache_dir() is None or not _applies():
+    if cache_dir() is None or not applies():
         return False
     prekey = _prekey(jitted, origin, options, static, leaves, treedef)
     if prekey is None:
@@ -364,7 +376,7 @@ def remembered(origin, compute) -> bool:
     under a digest of `origin` where it has a faithful text (as a pre-key): a later
     process reads it instead of computing it."""
     path = None
-    if cache_dir() is not None and _applies() and _library_function(origin[0]):
+    if cache_dir() is not None and applies() and _library_function(origin[0]):
         try:
             path = _path(_digest("d", origin, ()), ".key")
         except Exception:  # noqa: BLE001 -- as for a pre-key: computed, not kept

@@ -16,7 +16,8 @@ import tempfile
 from .processes import broadcast
 
 
-BLOCK_CHUNKS = 4  # chunks per device in a checkpoint/progress block
+# A checkpoint block: this many times the lanes of every device.
+BLOCK_LANE_WIDTHS = 4
 
 
 def _umask():
@@ -70,21 +71,21 @@ class Blocks:
         import numpy as np
 
         self.writer = jax.process_index() == 0
-        # The library's default chunk and size classes: `sweep_periods` with its
+        # The library's default lanes and size classes: `sweep_periods` with its
         # defaults and `lagrax sweep` share their compiled programs (on disk too).
         from .._checks import lane_count
-        from .._period.sweep import CPU_CHUNK, size_class
+        from .._period.sweep import CPU_LANES, size_class
 
         share = -(-size_class(args.count) // len(devices))
-        self.chunk_size = lane_count(
-            args.chunk_size,
-            "chunk_size",
+        self.lanes = lane_count(
+            args.lanes,
+            "lanes",
             devices,
             share,
-            cpu=CPU_CHUNK,
+            cpu=CPU_LANES,
             accelerator=1 << 18,
         )
-        self.block = self.chunk_size * len(devices) * BLOCK_CHUNKS
+        self.block = self.lanes * len(devices) * BLOCK_LANE_WIDTHS
         self.count = args.count
         self.n_blocks = {t.name: -(-args.count // self.block) for t in targets}
         self.dir = None if args.out is None else args.out + ".partial"
@@ -107,7 +108,7 @@ class Blocks:
             k: getattr(args, k)
             for k in ("count", "solver", "rtol", "atol", "max_steps")
         }
-        settings["chunk_size"] = self.chunk_size
+        settings["lanes"] = self.lanes
         settings["devices"] = len(devices)
         settings["targets"] = {
             t.name: [list(t.extra["range"]), t.method] for t in targets

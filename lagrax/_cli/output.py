@@ -1,5 +1,6 @@
 """What `lagrax sweep` shows and writes: the table, the .csv or .npz, the progress."""
 
+import functools
 import sys
 
 from .checkpoint import atomic_write
@@ -160,3 +161,32 @@ class Bar:
     def close(self):
         if self.bar is not None:
             self.bar.close()
+
+
+def bar_meter(bar, offset, count):
+    """A diffrax progress meter for `sweep_periods` that moves `bar` to `offset`
+    plus the done fraction of `count` amplitudes."""
+    return _bar_meter_class()(bar, offset, count)
+
+
+@functools.cache
+def _bar_meter_class():
+    import diffrax as dfx
+    import equinox as eqx
+
+    class BarMeter(dfx.AbstractProgressMeter):
+        bar: Bar = eqx.field(static=True)
+        offset: int = eqx.field(static=True)
+        count: int = eqx.field(static=True)
+
+        def init(self):
+            return None
+
+        def step(self, state, progress):
+            self.bar.to(self.offset + round(float(progress) * self.count))
+            return state
+
+        def close(self, state):
+            pass
+
+    return BarMeter

@@ -133,10 +133,10 @@ def parser():
         "exact where known, else none)",
     )
     s.add_argument(
-        "--chunk-size",
+        "--lanes",
         type=int,
         default=None,
-        help="lanes per compiled batch and device (default 256 on a CPU, as "
+        help="lanes per compiled loop and device (default 256 on a CPU, as "
         "lagrax.sweep_periods: the command and the library share their compiled "
         "programs; on a GPU every amplitude of a device's share, up to 262144)",
     )
@@ -241,8 +241,8 @@ def validate(args):
         return
     if args.count < 1:
         raise UsageError(f"--count must be a positive integer; got {args.count}")
-    if args.chunk_size is not None and args.chunk_size < 1:
-        raise UsageError(f"--chunk-size must be positive; got {args.chunk_size}")
+    if args.lanes is not None and args.lanes < 1:
+        raise UsageError(f"--lanes must be positive; got {args.lanes}")
     if args.rows < 0:
         raise UsageError(f"--rows must be >= 0; got {args.rows}")
     if args.max_steps is not None and args.max_steps < 1:

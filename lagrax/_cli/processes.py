@@ -34,7 +34,7 @@ def setup_jax(args):
             pass
     wanted = args.devices if args.devices is not None else cpu_count()
     try:
-        # Every core a host device: a CPU device runs one chunk at a time, so one
+        # Every core a host device: a CPU device runs one loop at a time, so one
         # device is one core. Ignored where the default backend is a GPU or TPU.
         # Called from Python (`main(argv)`), JAX's device count is the caller's
         # unless --devices says otherwise.

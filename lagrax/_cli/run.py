@@ -6,7 +6,7 @@ import time
 from . import targets as _targets
 from .chart import plot
 from .checkpoint import Blocks, DamagedPiece
-from .output import Bar, status_name, table, write_out
+from .output import Bar, bar_meter, status_name, table, write_out
 from .parser import check_paths, UsageError
 from .processes import broadcast, setup_jax
 
@@ -52,10 +52,7 @@ def sweep(target, args, devices, blocks, targets, bar):
                         + "; run the command again"
                     )
         else:
-
-            def progress(done, total, offset=sl.start):
-                bar.to(offset + done)
-
+            meter = bar_meter(bar, sl.start, sl.stop - sl.start)
             res = lagrax.sweep_periods(
                 target.L,
                 jnp.asarray(q0[sl]),
@@ -63,9 +60,9 @@ def sweep(target, args, devices, blocks, targets, bar):
                 rtol=args.rtol,
                 atol=args.atol,
                 method=target.method,
-                chunk_size=blocks.chunk_size,
+                lanes=blocks.lanes,
                 devices=devices,
-                progress=progress if bar.active else None,
+                progress_meter=meter if bar.active else dfx.NoProgressMeter(),
                 **kwargs,
             )
             stepped = res.solver

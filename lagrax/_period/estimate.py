@@ -21,7 +21,7 @@ from jaxtyping import Array, Float
 
 from .._results import SUCCESS
 from .._stepper.base import horner
-from .._stepper.taylor import TaylorStepper
+from .._taylor.stepper import TaylorStepper
 
 
 # The second solve: at `TIGHTER` times the tolerances (for "matched", from the far

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .._jaxpr.fusion import one_fusion
-from .mechanics import mechanics
+from .quantities import mechanics
 
 
 # Safeguarded Newton converges in ~5 iterations from the bracket; the loop stops when

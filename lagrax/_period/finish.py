@@ -19,8 +19,8 @@ from .._results import (
 from .._stepper.base import fused
 from .estimate import BoundTerms
 from .events import Event, MAX_SPEED
-from .mechanics import mechanics
 from .outcome import LOCATE_FAILED, LOCATED, MAX_STEPS, NO_EVENT
+from .quantities import mechanics
 
 
 class Ends(eqx.Module):

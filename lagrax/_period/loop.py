@@ -23,8 +23,8 @@ from .._stepper.controller import IController
 from .estimate import step_increments, step_terms
 from .events import Event, locate_in_step, search
 from .lane import advance, fuse_lanes, LaneConstants, next_lane
-from .mechanics import mechanics
 from .outcome import lane_outcome
+from .quantities import mechanics
 from .queue import Queue
 from .units import lane_scales
 

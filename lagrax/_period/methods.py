@@ -20,7 +20,7 @@ from .._results import (
     SUCCESS,
 )
 from .._stepper.base import AbstractStepper
-from .._stepper.taylor import TaylorStepper
+from .._taylor.stepper import TaylorStepper
 from .estimate import needs_second_solve, screen, screen_quarter, TIGHTER
 from .events import MAX_SPEED, POSITION, TURNING
 from .far_turning_point import far_turning_point

@@ -15,7 +15,7 @@ from .._checks import (
     positive_scalar,
     tolerances,
 )
-from .._taylor.solver import Taylor
+from .._taylor.taylor import Taylor
 from .solver import stepper_of
 
 

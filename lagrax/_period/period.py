@@ -14,7 +14,7 @@ assumes a centre of oscillation; the turning points are found wherever they are.
 `period` is the one-lane entry point: it checks its arguments, runs one lane of the
 period kernel (`loop.py`: the loop over lanes; `methods.py`: legs; `estimate.py`:
 the error estimate; `finish.py`: statuses) and turns a failed status into an error.
-Numerical choices (each one a measured trap):
+Numerical choices (each one a trap met in practice):
 
 - Each lane is integrated in its own units, $x = (q - q_0)/|q_0|$ and $s = t/\tau$
   with $\tau = \sqrt{|q_0| / |\ddot q(q_0)|}$, so that `rtol`/`atol` mean the same
@@ -45,15 +45,14 @@ from .._results import (
     NOT_OSCILLATING,
     SINGULAR_MASS,
     STATUS_CODES as STATUS_CODES,
+    status_member,
     status_message as status_message,
-    status_result,
     SUCCESS,
 )
-from .._taylor.solver import Taylor
+from .._taylor.taylor import Taylor
 from .methods import Method
 from .options import check_options
-from .reuse import canonical_inputs
-from .solver import stepper_of
+from .solver import canonical_inputs, stepper_of
 from .sweep import _eager, _sweep_call
 
 
@@ -94,38 +93,30 @@ def period(
         each started at rest at its own turning point and ended at the point of
         maximum speed $q_m$ ($\ddot q = 0$, found by event), the far turning point
         $q_1$ solved from $L(q_1, 0) = L(q_0, 0)$ (the energy at rest) by bracketed
-        Newton. Right whenever `"half"` is (below), and nothing is integrated through
-        the bottom of the swing, where one rounding of $\dot q$ is an energy error
-        that the slow approach to a hump amplifies: 2.7e-13 on the pendulum at
-        $\pi - 10^{-3}$ where `"half"` loses 1.7e-9. What remains there is the
-        rounding of $L(q, 0)$ itself, which leaves $q_1$ undetermined within a band
-        that the error estimate accounts for.
+        Newton. Right whenever `"half"` is, and nothing is integrated through the
+        bottom of the swing, where one rounding of $\dot q$ is an energy error that
+        the slow approach to a hump amplifies (near a separatrix `"half"` loses
+        digits that `"matched"` keeps). What remains is the rounding of $L(q, 0)$
+        itself, which leaves $q_1$ undetermined within a band that the error
+        estimate accounts for.
     - `"half"`: $T = 2\,t(q_0 \to q_1)$. Exact when $L$ is even in $\dot q$
         and has no explicit time dependence (every $L = \frac12 m(q)\dot q^2 - V(q)$,
         symmetric potential or not): the return leg is the outgoing one reversed.
     - `"full"`: through $q_1$ and back to $q_0$: any autonomous one-coordinate $L$;
         twice the work.
-    - `"quarter"`: $T = 4\,t(q_0 \to q_m)$, $q_m$ the point of maximum speed
-        ($\ddot q = 0$, found by event, not assumed). Exact only for a well that is
+    - `"quarter"`: $T = 4\,t(q_0 \to q_m)$. Exact only for a well that is
         mirror-symmetric about $q_m$ (pendulum, cycloid); half the work of `"half"`,
-        and the only well-conditioned choice near a separatrix: past the bottom, one
-        rounding of $\dot q$ changes $T$ by $\sim 4\,\delta E/\delta^2$ for a release
-        $\delta$ below a hump (pendulum: ~1e-10 relative at $\pi - 10^{-3}$ in float64,
-        whatever the tolerances), which `"quarter"` never integrates through. A lane
-        whose mirror image of $q_0$ is not a turning point, or whose $L$ is not
-        mirror-symmetric about $q_m$ at three sample points across the swing (at
-        the speed of $q_m$), gets status `not_symmetric` instead of a wrong number.
-        (Sampled, not proven: an asymmetry confined between the samples is missed.)
+        and never integrates past the bottom, whose rounding error grows as
+        $\sim 4\,\delta E/\delta^2$ for a release $\delta$ below a hump. A lane whose
+        mirror image of $q_0$ is not a turning point, or whose $L$ is not
+        mirror-symmetric about $q_m$ at three sample points across the swing, gets
+        status `not_symmetric` instead of a wrong number (sampled, not proven: an
+        asymmetry confined between the samples is missed).
 
-    This runs on the same kernel as `sweep_periods` (one lane), and gives the same
-    numbers for the same solver; `solver` is a diffrax explicit Runge–Kutta solver,
-    whose tableau the kernel steps through, or `lagrax.Taylor()`, a Taylor integrator
-    whose coefficients come by recurrence from the acceleration's jaxpr (heyoka.py's
-    method; ~5x fewer steps per period than `Dopri8` on the pendulum; see
-    `lagrax.Taylor`).
-
-    Plain JAX: works under `jit`, `vmap` and `grad` (with respect to `q0` and to any
-    parameter `L` closes over). For many amplitudes at once use `sweep_periods`.
+    This runs on the kernel of `sweep_periods` (one lane) and gives the same numbers
+    for the same solver. Plain JAX: works under `jit`, `vmap` and `grad` (with
+    respect to `q0` and to any parameter `L` closes over). For many amplitudes at
+    once use `sweep_periods`.
 
     **Arguments:**
 
@@ -133,32 +124,31 @@ def period(
         `(1,)`).
     - `q0`: the release point (the amplitude, in the coordinate `L` is written in), a
         scalar or shape `(1,)`.
-    - `solver`: an adaptive explicit Runge–Kutta diffrax solver (default `Dopri8()`;
-        `Tsit5()`, `Dopri5()`, … work too), or `lagrax.Taylor()` (also
-        `Taylor(fallback=Dopri8())`, the default of `sweep_periods`). For one lane
-        the run time is a few ms either way and the first call's compile decides:
-        `Dopri8()` compiles faster than `Taylor()`, and its first `jax.grad` several
-        times faster.
+    - `solver`: an adaptive explicit Runge–Kutta diffrax solver, whose tableau the
+        kernel steps through (default `Dopri8()`; `Tsit5()`, `Dopri5()`, … work
+        too), or `lagrax.Taylor()` (also `Taylor(fallback=Dopri8())`, the default
+        of `sweep_periods`). The defaults differ on purpose: one lane runs in
+        milliseconds either way, so the first call's compile decides, and `Dopri8()`
+        compiles faster than `Taylor()` (its first `jax.grad` several times
+        faster); a sweep runs long enough for the Taylor step's speed to pay.
     - `rtol`, `atol`: tolerances, in the lane's own units (lengths in $|q_0|$, times
         in $\sqrt{|q_0|/|\ddot q(q_0)|}$): small amplitudes keep relative accuracy.
     - `max_steps`: the most steps for one swing.
     - `t_max`: give up (status `not_oscillating`) if no turning point by then; default
         no limit (`max_steps` bounds the work; a coordinate running away to
         $|q - q_0| > 10^6 \max(|q_0|, 1)$ stops the solve as not oscillating).
-    - `energy_tol`: the largest accepted energy drift between release and turning point,
-        relative to $|M\ddot q|\,|q_0|$ at release; default $\sqrt{\text{rtol}}$.
+    - `energy_tol`: the largest accepted energy drift between release and turning
+        point, relative to $|M\ddot q|\,|q_0|$ at release; default
+        $\sqrt{\text{rtol}}$.
     - `method`: `"matched"`, `"half"`, `"full"` or `"quarter"`, see above.
     - `throw`: raise on failure (under `jit`/`vmap` an equinox runtime error); with
         `throw=False` a failure gives NaN.
-    - `error_estimate`: also return an estimate of $|T - T_\text{exact}|/T$ (see
-        `sweep_periods`: with `lagrax.Taylor()` and `"matched"` or `"quarter"` a
-        first-order bound from the solve itself, else, or where that bound cannot
-        vouch for it, a second solve at tighter tolerances), and report a lane whose
-        estimate exceeds 100 rtol as `tolerance_not_met`.
+    - `error_estimate`: also return an estimate of $|T - T_\text{exact}|/T$ (as
+        `sweep_periods` computes it), and fail a lane whose estimate exceeds 100 rtol
+        (`tolerance_not_met`). Off by default here, on in `sweep_periods`: here it
+        changes what is returned (a pair instead of $T$), there it is one more field.
 
-    **Returns:**
-
-    $T$, a scalar; `(T, estimate)` with `error_estimate=True`.
+    **Returns:** $T$, a scalar; `(T, estimate)` with `error_estimate=True`.
 
     **Raises:**
 
@@ -167,7 +157,7 @@ def period(
         (status `not_oscillating`, `singular_mass`; the error is also a
         `RuntimeError`).
     - `RuntimeError` (eager) or an equinox runtime error (traced), with the status
-        message (see `status_message`), when the period cannot be trusted.
+        message (`lagrax.PeriodStatus`), when the period cannot be trusted.
 
     **Example:**
 
@@ -208,7 +198,7 @@ def period(
                     f"({STATUS_CODES[code]}): {status_message(code)}."
                 )
         else:  # the status's own message, under jit too
-            out = status_result(out.status).error_if(out, out.status != SUCCESS)
+            out = status_member(out.status).error_if(out, out.status != SUCCESS)
     return (out.period, estimate) if error_estimate else out.period
 
 

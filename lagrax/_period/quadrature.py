@@ -51,7 +51,7 @@ from .._results import (
 )
 
 
-# The statuses are `lagrax.RESULTS` (int view); these names are the quadrature's
+# The statuses are `lagrax.PeriodStatus` (int view); these names are the quadrature's
 # reasons, as codes of that one enumeration.
 EQUILIBRIUM = NOT_OSCILLATING
 ROOT_FAILED = ROOT_FIND_FAILED
@@ -62,7 +62,7 @@ class QuadratureResult(eqx.Module):
     r"""What `lagrax.quadrature_period` returns.
 
     - `periods`: the periods $T$, shaped like `q0`; NaN where `status != 0`.
-    - `status`: int codes shaped like `q0`, the int view of `lagrax.RESULTS`
+    - `status`: int codes shaped like `q0`, the int view of `lagrax.PeriodStatus`
         (shared with `sweep_periods`; `lagrax.STATUS_CODES`): `success`,
         `not_oscillating` (at an equilibrium), `escapes`, `unresolved`,
         `singular_mass`, `root_find_failed`, `not_natural`, `nonfinite_period`. See
@@ -404,7 +404,10 @@ def quadrature_period(
         rest); a scalar gives a scalar period.
     - `rtol`: the largest acceptable estimated relative error (`errors`); a release
         point beyond it (too near a hilltop for this precision) gets status
-        `unresolved` and no number. An array: changing it does not recompile.
+        `unresolved` and no number. An array: changing it does not recompile. A
+        threshold on the result, not a step tolerance: its default, 1e-12, sits
+        above what the default rule reaches, where the integrators' 1e-13 steers
+        their steps.
     - `nodes`: Gauss–Legendre nodes of the outer rule (even; static). 128 reaches
         ~1e-13 for the pendulum up to ~1e-2 from the top; releases nearer an unstable
         equilibrium need more (or get status `unresolved`).

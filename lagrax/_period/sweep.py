@@ -3,7 +3,6 @@ compiled call per sweep, in input order."""
 
 import dataclasses
 import functools
-from collections.abc import Callable
 
 import diffrax as dfx
 import equinox as eqx
@@ -15,26 +14,25 @@ from jaxtyping import Array, Float, Int
 from .._cache import executables
 from .._checks import (
     as_real_array,
-    check_callable,
     check_devices,
+    check_instance,
     is_concrete,
     lane_count,
 )
 from .._jaxpr.canonical import canonical_lagrangian
 from .._jaxpr.fusion import elemental_options
 from .._results import status_message, SUCCESS
-from .._taylor.solver import Taylor
+from .._taylor.taylor import Taylor
 from . import tier
 from .autodiff import forward_jacobian, forward_mode, periods_diff, tangents_of
 from .device import Periods
 from .methods import Method
 from .options import check_options
-from .reuse import resolved_solver
-from .solver import stepper_of
+from .solver import resolved_solver, stepper_of
 
 
 # Lanes per device on a CPU by default (also `lagrax sweep`'s: they share programs).
-CPU_CHUNK = 256
+CPU_LANES = 256
 
 
 def _lane_order(q0):
@@ -62,132 +60,113 @@ def sweep_periods(
     t_max=None,
     energy_tol=None,
     method: str = "matched",
-    chunk_size: int | None = None,
+    lanes: int | None = None,
     sort: bool = True,
     devices=None,
-    progress: Callable[[int, int], None] | None = None,
+    progress_meter: dfx.AbstractProgressMeter = dfx.NoProgressMeter(),
     error_estimate: bool = True,
 ):
     r"""Periods of many release points at once: `period` over a batch, done fast.
 
-    Each lane computes $T = t(q_0\to q_1) + t(q_1 \to q_0)$ as in `period` (by default
-    with `method="matched"`, see there). The batch runs through one compiled loop per
-    device: `chunk_size` lanes step together, and a lane that finishes takes the next
-    release point from a queue inside the loop, so no lane waits for the slowest; the
-    lanes take the release points by decreasing |q0| (`sort`), whatever their order in
-    `q0` (`useful_fraction` is typically 0.98–0.99 on one device). The step
-    is, by default, an order-20 Taylor step (`lagrax.Taylor`: several times the
-    periods per second of `Dopri8` on the pendulum, at the same or better accuracy:
-    `benchmarks/sweep.py`), or where L's acceleration has a primitive without a Taylor
-    recurrence, or with an explicit `solver=diffrax.Dopri8()` (any adaptive explicit
-    Runge–Kutta pair), that solver's step written out stage by stage from its diffrax
-    tableau, with diffrax's step-size rule; `SweepResult.solver` says which. An event
-    is located inside the Taylor step that crosses it, from the step's polynomials;
-    with a Runge–Kutta step, by trial steps with the step length as the unknown.
-    Amplitudes and tolerances are arrays: changing them never recompiles.
+    Each lane computes $T = t(q_0\to q_1) + t(q_1 \to q_0)$ as `period` does (by
+    default with `method="matched"`, see there), and comes with an estimate of its
+    relative error. The batch runs in one compiled loop per device: `lanes` lanes
+    step together, and a lane that finishes takes the next release point from a
+    queue inside the loop, so no lane waits for the slowest. The step is, by
+    default, an order-20 Taylor step (`lagrax.Taylor`); where L's acceleration has a
+    primitive without a Taylor recurrence or a program too large to unroll, or with
+    an explicit `solver=diffrax.Dopri8()` (any adaptive explicit Runge–Kutta pair),
+    that solver's step, written out stage by stage from its diffrax tableau.
+    `SweepResult.solver` says which stepped. Speed and accuracy against heyoka.py,
+    scipy and diffrax: `benchmarks/README.md`.
 
-    Each period comes with an error estimate (`error_estimate=True`, the default). With
-    a Taylor step and `"matched"` (the default) or `"quarter"` it comes from the solve
-    itself: a first-order
-    bound that carries each step's error bound (truncation and rounding) to the period,
-    as a time shift along the orbit and an energy error times its leverage on the rest
-    of the leg, $\int dt/(M\dot q^2)$, plus the far turning point's rounding band times
-    $d\tau/dE$ (a finite-part integral from rest); its sums cost a few percent of the
-    solve. Where that bound cannot vouch for a lane (above 100 rtol, a leverage beyond
-    its range, a mass that varies), and for every other method and solver, the lane is
-    solved a second time at 10x tighter tolerances (for `"matched"`, from the far
-    turning point moved across the band within which float64 rounding of $L$ leaves it
-    undetermined), nearer the truth than the first solve, and the estimate is 4 times
-    the relative difference plus a fraction of rtol (0.02 with a Runge–Kutta step, 0.1
-    with a Taylor step: where a lane's error happens to cancel at one tolerance and
-    not at the other, the two solves agree better than either agrees with the truth)
-    plus 16 ulps; that second solve costs a little more than the first, for the lanes
-    that need it only. Validated with `Taylor()` and `Dopri8` against exact periods
-    (pendulum, cycloid, the asymmetric well to 0.99 of its hump against a 40-digit
-    quadrature, random wells against `quadrature_period`; `benchmarks/accuracy.py
-    --periods`). The bound is never below the true error from rtol 1e-13 to 1e-8,
-    2-10x above it at the median from 1e-12 on and ~30x at the default, where the
-    true error is a few ulps of rounding. The second solve's estimate is 4-5x above
-    it at the median with Dopri8 (every method) and 5-20x with Taylor ("half",
-    "full"), never below
-    with Dopri8 on the pendulum's and the well's lanes at rtol 1e-13 and 1e-10; with
-    Taylor's "half" and "full" it was below on one lane within ~0.15 of the
-    pendulum's separatrix, where the rounding loss past the bottom is the same in
-    both solves. With lower-order pairs (`Tsit5`, `Dopri5`) the calibration is not
-    established.
-    A lane whose estimate exceeds 100 rtol gets status `tolerance_not_met` and no
-    number; `error_estimate=False` skips the estimate.
+    A failing lane is reported in `status` (its period NaN) and never changes the
+    others: their periods are bit-for-bit those of a sweep without it.
+    Differentiable with `jax.grad`, `jax.jacfwd` and `jax.jvp` with respect to `q0`
+    and to parameters `L` closes over (each scalar parameter differentiated costs one
+    forward pass through the sweep).
 
-    A failing lane is reported in `status` and never changes the others: their periods
-    are bit-for-bit those of a sweep without it. Differentiable with `jax.grad`,
-    `jax.jacfwd` and `jax.jvp` (with respect to `q0` and to parameters `L` closes
-    over; each such scalar parameter being differentiated costs one forward pass
-    through the sweep, the others nothing).
+    **Error estimate** (`error_estimate=True`, the default). With a Taylor step and
+    `"matched"` or `"quarter"` it comes from the solve itself: a first-order bound
+    that carries each step's error bound (truncation and rounding) to the period,
+    plus the far turning point's rounding band times $d\tau/dE$. Where that bound
+    cannot vouch for a lane (above 100 rtol, a leverage beyond its range, a mass that
+    varies), and for every other method and solver, the lane is solved a second
+    time at 10x tighter tolerances, nearer the truth than the first solve: the
+    estimate is 4 times the relative difference, plus a fraction of rtol (where a
+    lane's error happens to cancel at one tolerance and not at the other, the two
+    solves agree better than either agrees with the truth; 0.02 with a Runge–Kutta
+    step, 0.1 with a Taylor step), plus 16 ulps. A lane whose estimate exceeds 100
+    rtol gets status `tolerance_not_met` and no number. The bound was never below the
+    true error in the validation runs (`benchmarks/accuracy.py --periods`), nor was
+    the second solve's estimate with `Dopri8`; with a Taylor step, "half" and "full"
+    near a separatrix lose to rounding past the bottom alike in both solves, and the
+    estimate can fall below the error there. It is not calibrated for pairs of lower
+    order than `Dopri8` (`Tsit5`, `Dopri5`).
+
+    **What compiles:** one program per body of `L` (its float constants are
+    arguments: a Lagrangian rebuilt with other parameter values reuses it), solver,
+    `method`, `lanes`, `max_steps`, `error_estimate`, device set and size class of the
+    amplitude count: an eager sweep of $n$ amplitudes runs the program of the smallest
+    of 8, 12, 16, 24, 32, 48, ... (powers of two and 1.5 times them) that holds $n$,
+    padded with NaN release points, which take no step (under `jit`, the count
+    itself). Tolerances, `t_max` and `energy_tol` are arguments. On a CPU an eager
+    sweep's program is kept on disk
+    (`$LAGRAX_CACHE_DIR`, else `~/.cache/lagrax/executables`, at most 1 GiB, least
+    recently used removed first; `LAGRAX_CACHE_DIR=""` turns it off): a later
+    process loads it instead of compiling. While JAX's persistent compilation cache
+    is on (`jax.config.update("jax_compilation_cache_dir", ...)`) it keeps the
+    programs and the library writes none of its own. A new Lagrangian's first eager
+    sweeps on a CPU may run on a compact program, compiled once per machine for all
+    Lagrangians of a size class (a one-line notice when it compiles), until the time
+    spent there would pay for the Lagrangian's own program.
 
     **Arguments:**
 
     - `L`: the Lagrangian `L(q, qdot, t) -> scalar` of one coordinate: a function,
         or a pytree such as an `equinox.Module` whose float array fields are its
-        parameters (passed to the compiled kernel as arguments).
-    - `q0`: release points, a 1-D float array.
-    - `solver`: default `Taylor(fallback=Dopri8())` (above); any solver `period`
-        takes. For a sweep to be differentiated, `solver=diffrax.Dopri8()` compiles
-        its derivative faster (about half the time of the Taylor step's) and runs
-        it slower. An eager `jax.grad` compiles the Taylor step's derivative with
-        XLA's elemental CPU emitters; in a `jax.jit` of your own around it, pass
-        `compiler_options={"xla_cpu_use_fusion_emitters": False}` to that `jit`
-        (the default emitters run that derivative tens of times slower on a CPU).
-        Inside the kernel, float64 `sin` and `cos` in the equations are
-        computed by lagrax's own vectorized versions (within 1 ulp, several times
-        faster than the C library's on a CPU) in every Runge–Kutta stage and Taylor
-        step; their argument must stay within
-        $2^{19}\pi/2 \approx 8.2\cdot10^5$ (radians), beyond which they are NaN
-        and the lane fails (its status says so), never a wrong number.
-    - `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in `period`
-        (the same for every lane).
-    - `chunk_size`: lanes stepping together per device (static: changing it compiles
-        anew). By default 256 on a CPU: on the pendulum (1024 to 65,536 amplitudes;
-        the defaults, Taylor and Dopri8 "quarter") the fastest of 128 to 2048 or
-        close to it. On a GPU by default every amplitude of a device's share, up to
-        262,144 lanes: it needs far more lanes in flight (an H200, 10^6 amplitudes
-        at the defaults: 49.8 M periods/s with 65,536 lanes, 61.5 M/s with 262,144;
-        `benchmarks/sweep.py --gpu`).
-    - `error_estimate`: compute the per-lane error estimate (see above).
+        parameters.
+    - `q0`: release points, a non-empty 1-D float array.
+    - `solver`: default `Taylor(fallback=Dopri8())`, or any solver `period` takes.
+        Inside the kernel, float64 `sin` and `cos` are lagrax's own vectorized
+        versions (within 1 ulp), for arguments up to $2^{19}\pi/2 \approx
+        8.2\cdot10^5$ radians: beyond, the lane fails (`solver_failed`).
+    - `rtol`, `atol`, `max_steps`, `t_max`, `energy_tol`, `method`: as in `period`,
+        the same for every lane.
+    - `lanes`: lanes stepping together per device (static). Default: 256 on a CPU;
+        on a GPU, every amplitude of a device's share, up to 262,144 (a GPU needs
+        many lanes in flight).
     - `sort`: run the lanes in order of decreasing |q0| (default True; the outputs
-        stay in input order). The queue needs no sorted input to keep lanes busy,
-        but the compiled loop runs faster when neighbouring lanes hold neighbouring
-        release points. Sorting is
-        done on the host, so only where `q0` is concrete: under `jit` or `grad`,
-        `q0` keeps its order (sort it yourself there if it is unsorted).
-    - `devices`: the devices to share the batch over (default: all of `jax.devices()`,
-        which under `jax.distributed` includes every process's devices); each device
-        runs its own loop on an interleaved share, and every process receives the
-        whole result.
-    - `progress`: optional callback `progress(done, total)`, called as the sweep goes
-        (eager calls only; the batch is then run in about 20 pieces).
+        stay in input order): the compiled loop runs faster when neighbouring lanes
+        hold neighbouring release points. Done on the host, so only where `q0` is
+        concrete (under `jit` or `grad`, sort it yourself).
+    - `devices`: the devices to share the batch over (default: all of
+        `jax.devices()`, which under `jax.distributed` includes every process's);
+        each runs its own loop on an interleaved share, and every process receives
+        the whole result.
+    - `progress_meter`: a diffrax progress meter (default
+        `diffrax.NoProgressMeter()`), e.g. `diffrax.TqdmProgressMeter()`: an eager
+        sweep then runs in about 20 pieces and steps the meter after each.
+    - `error_estimate`: compute the per-lane error estimate (above; default True).
 
-    **Returns:**
+    **Returns:** a `lagrax.SweepResult`, in the input order: `periods` (NaN where
+    failed), `status` (int codes, 0 for success; `lagrax.PeriodStatus`), `num_steps`,
+    `error_estimate` (None with `error_estimate=False`), `solver` (the one that
+    stepped), and the work statistics `lane_steps_useful`, `lane_steps_executed`,
+    `useful_fraction`, `lanes`, `num_devices`.
 
-    A `lagrax.SweepResult` with `periods`, `status`, `num_steps` in the input order and
-    the work statistics (`useful_fraction`).
-
-    **Raises:**
-
-    `TypeError`/`ValueError` on bad arguments, naming the argument.
+    **Raises:** `TypeError`/`ValueError` on bad arguments, naming the argument.
 
     **Example:**
 
     ```python
     L = lagrax.systems.pendulum.lagrangian()
     res = lagrax.sweep_periods(L, jnp.linspace(0.01, 3.1, 4096))
-    res.periods, res.status, res.useful_fraction
+    res.periods, res.status, res.error_estimate
     ```
 
-    **Parameter scans and gradients:** the compiled sweep is keyed on what `L`
-    computes, with its float constants passed as arguments: a Lagrangian built again
-    for another parameter value (a new closure, or an `equinox.Module` with other
-    field values) runs on the sweep already compiled, and `jax.grad` differentiates
-    the periods with respect to a parameter `L` closes over.
+    A parameter scan reuses the compiled sweep; `jax.grad` differentiates with
+    respect to a parameter `L` closes over:
 
     ```python
     import diffrax
@@ -203,20 +182,6 @@ def sweep_periods(
 
     jax.grad(mean_period)(4.0)  # -mean_period(4.0) / 8, as T ∝ 1/√g
     ```
-
-    **Repeat runs:** a new Lagrangian's first sweep compiles for seconds. On a CPU
-    an eager sweep's compiled program is kept on disk by the library (in
-    `$LAGRAX_CACHE_DIR`, else `~/.cache/lagrax/executables`, at most 1 GiB, the
-    least recently used entries removed first; `LAGRAX_CACHE_DIR=""` turns it off),
-    keyed on the program's own text: a later process sweeping the same body, with
-    any parameter values, at the same number of amplitudes and options loads it
-    instead of compiling, found without tracing it where `L` and the options are
-    made of plain values (about half a second on a CPU core instead of ~14 s). It
-    never changes JAX's configuration; under `jax.jit` the program is yours, and
-    JAX's persistent compilation cache
-    (`jax.config.update("jax_compilation_cache_dir", ...)`) keeps it. While that
-    cache is on, it keeps the eager programs too and the library writes none of
-    its own (an executable JAX took from it serializes without its machine code).
     """
     q0 = as_real_array(q0, "q0")
     if q0.ndim != 1 or q0.shape[0] == 0:
@@ -229,16 +194,20 @@ def sweep_periods(
     )
     devices = check_devices(jax.devices() if devices is None else devices)
     per_device = -(-size_class(q0.shape[0]) // len(devices))
-    chunk_size = lane_count(
-        chunk_size,
-        "chunk_size",
+    lanes = lane_count(
+        lanes,
+        "lanes",
         devices,
         per_device,
-        cpu=CPU_CHUNK,
+        cpu=CPU_LANES,
         accelerator=1 << 18,
     )
-    if progress is not None:
-        check_callable(progress, "progress", "a function progress(done, total)")
+    check_instance(
+        progress_meter,
+        "progress_meter",
+        dfx.AbstractProgressMeter,
+        "a diffrax progress meter, e.g. diffrax.TqdmProgressMeter()",
+    )
     dtype = q0.dtype
     # (Keyed on what L computes: a rebuilt L with new parameter values reuses the
     # program compiled for the first.)
@@ -248,7 +217,7 @@ def sweep_periods(
     cfg = Method(
         stepper_of(solver),
         opts.method,
-        chunk_size,
+        lanes,
         opts.max_steps,
         bool(error_estimate),
     )
@@ -256,16 +225,17 @@ def sweep_periods(
 
     def run(q, order):
         # Nothing traced, nothing to differentiate: the compiled call without the
-        # derivative rule's wrapper (whose eager dispatch costs ~0.4 ms a call),
+        # derivative rule's wrapper (whose eager dispatch costs as much as a small
+        # sweep),
         # through the tiers and the library's disk cache of executables.
         if is_concrete(q, args):
             return _eager(L_c, cfg, devices, q, order, args)
         return _sweep_call(L_c, cfg, devices, q, order, *args)
 
     order = _lane_order(q0) if sort else np.arange(n, dtype=np.int32)
-    if progress is not None:
-        size = max(chunk_size * len(devices) * 4, -(-n // 20))
-        out, useful = _in_pieces(run, q0, order, size, progress)
+    if not isinstance(progress_meter, dfx.NoProgressMeter):
+        size = max(lanes * len(devices) * 4, -(-n // 20))
+        out, useful = _in_pieces(run, q0, order, size, progress_meter)
     elif is_concrete(q0, args) and size_class(n) > n:
         out, useful = _padded(run, q0, order, size_class(n))
     else:
@@ -276,7 +246,7 @@ def sweep_periods(
         num_steps=out.steps,
         lane_steps_useful=useful,
         lane_steps_executed=jnp.asarray(out.executed),
-        chunk_size=chunk_size,
+        lanes=lanes,
         num_devices=len(devices),
         error_estimate=out.estimate if error_estimate else None,
         solver=solver,
@@ -295,9 +265,9 @@ def size_class(n: int) -> int:
 
 def _padded(run, q0, order, size) -> tuple[Periods, Array]:
     """`run` of the sweep padded to `size` amplitudes with NaN release points, run
-    last (they end at their release, status `invalid`, and take no step), the
+    last (they end at their release, status `nonfinite_input`, no step taken), the
     results of the first `q0.shape[0]` back (NumPy, `jax.device_put`: op-by-op jnp
-    compiles each operation on its first call, ~20 ms apiece)."""
+    compiles each operation on its first call)."""
     n = q0.shape[0]
     q = np.concatenate([np.asarray(q0), np.full((size - n,), np.nan, q0.dtype)])
     order = np.concatenate([order, np.arange(n, size, dtype=np.int32)])
@@ -346,12 +316,12 @@ def _eager(L_c, cfg, devices, q, order, args):
     return compact.run(kind, specialized)
 
 
-def _in_pieces(run, q0, order, size, progress, pad=None) -> tuple[Periods, Array]:
+def _in_pieces(run, q0, order, size, meter, pad=None) -> tuple[Periods, Array]:
     """The sweep in order, in pieces of one size (one compilation) padded with
-    `pad` (default: the last release point), `progress` (if any) called after each;
-    back in input order, with the total of the steps. With NumPy where q0 is
+    `pad` (default: the last release point), the progress `meter` (if any) stepped
+    after each; back in input order, with the total of the steps. With NumPy where q0 is
     concrete, and `jax.device_put` to hand the results back: op-by-op jnp compiles
-    each operation (even `jnp.asarray`) on its first call, ~20 ms apiece."""
+    each operation (even `jnp.asarray`) on its first call."""
     n = q0.shape[0]
     traced = isinstance(q0, jax.core.Tracer)
     xp, device = (jnp, jnp.asarray) if traced else (np, jax.device_put)
@@ -362,12 +332,15 @@ def _in_pieces(run, q0, order, size, progress, pad=None) -> tuple[Periods, Array
         [q_sorted, xp.full((pieces * size - n,), fill, q_sorted.dtype)]
     )
     outs = []
+    state = None if meter is None else meter.init()
     for k in range(pieces):
         piece = padded[k * size : (k + 1) * size]
         outs.append(run(piece, np.arange(size, dtype=np.int32))[0])
-        if progress is not None:
+        if meter is not None:
             jax.block_until_ready(outs[-1])
-            progress(min((k + 1) * size, n), n)
+            state = meter.step(state, min((k + 1) * size, n) / n)
+    if meter is not None:
+        meter.close(state)
     inverse = np.argsort(order)
     joined = lambda f: xp.concatenate([xp.asarray(f(o)) for o in outs])[:n][inverse]
     steps = joined(lambda o: o.steps)
@@ -504,10 +477,10 @@ class SweepResult(eqx.Module):
     - `num_steps`: solver steps (accepted and rejected) per amplitude, all solves of
         the lane together.
     - `lane_steps_useful`: the sum of `num_steps`, the work each lane needed.
-    - `lane_steps_executed`: the lane-steps the batched loops actually ran (a vmapped
-        adaptive loop steps every lane of a chunk until its slowest lane is done, and
-        pads the last chunk).
-    - `chunk_size`: lanes per chunk and device; `num_devices`: devices used.
+    - `lane_steps_executed`: the lane-steps the compiled loops ran (every lane
+        steps at every iteration: a lane left without work at the queue's end
+        counts here, not in `lane_steps_useful`).
+    - `lanes`: lanes per loop and device; `num_devices`: devices used.
     - `error_estimate`: the per-lane estimate of the relative error (None when not
         asked for).
     - `solver`: the solver that stepped the lanes (for the default
@@ -519,7 +492,7 @@ class SweepResult(eqx.Module):
     num_steps: Int[Array, " n"]
     lane_steps_useful: Int[Array, ""]
     lane_steps_executed: Int[Array, ""]
-    chunk_size: int = eqx.field(static=True)
+    lanes: int = eqx.field(static=True)
     num_devices: int = eqx.field(static=True)
     error_estimate: Float[Array, " n"] | None = None
     solver: object = eqx.field(static=True, default=None)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .estimate import PROMISE
-from .mechanics import mechanics
+from .quantities import mechanics
 
 
 @eqx.filter_jit

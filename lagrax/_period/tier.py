@@ -3,7 +3,7 @@ r"""Which program sweeps a Lagrangian: the compact one, or the specialized one.
 The specialized program (L's equations compiled in) runs fastest but costs seconds
 of XLA compile for each new Lagrangian. The compact program runs the same period
 program with $L$ as data (`mechanics.CompactMechanics`,
-`lagrax._stepper.compact.CompactTaylorStepper`: two compact tapes,
+`lagrax._taylor.compact_stepper.CompactTaylorStepper`: two compact tapes,
 `lagrax._taylor.compact`): its executable is the same for every Lagrangian whose
 tapes are of one size class, compiled once per machine and kept on disk
 (`lagrax._cache.executables.call`), so that a new $L$ costs the tracing of its
@@ -26,7 +26,6 @@ only), "2" (the compact one wherever it applies: benchmarks, tests).
 """
 
 import collections
-import os
 import time
 import warnings
 
@@ -37,12 +36,12 @@ import numpy as np
 from .._cache import executables
 from .._jaxpr import scalarize as _scalarize
 from .._jaxpr.fusion import fusion_off
-from .._stepper.compact import CompactTaylorStepper
-from .._stepper.taylor import TaylorStepper
 from .._taylor import compact
+from .._taylor.compact_stepper import CompactTaylorStepper
+from .._taylor.stepper import TaylorStepper
 from .._taylor.system import _eval_entries, _SystemProgram
 from .._trajectory.batch import _compact_mode
-from .mechanics import AutodiffMechanics, CompactLagrangian, PeriodTapes
+from .quantities import AutodiffMechanics, CompactLagrangian, PeriodTapes
 
 
 # Seconds the specialized program takes to trace and compile: a sweep's, one
@@ -169,7 +168,7 @@ def applies(stepper) -> bool:
     return (
         type(stepper) is TaylorStepper
         and _compact_mode() != "0"
-        and executables._applies()
+        and executables.applies()
         and executables.cache_dir() is not None
     )
 
@@ -238,11 +237,7 @@ class Compact:
 
     def ready(self) -> bool:
         """Whether the executable is compiled in this process or on disk."""
-        # (The cache's own tables and paths: `executables.call` has no
-        # `available` of its own yet.)
-        key = executables._key(self.static, self.args)
-        path = executables._path(key)
-        return key in executables._LOADED or (path is not None and os.path.exists(path))
+        return executables.call_available(self.static, *self.args)
 
     def run(self, kind, specialized):
         """The compact program where its executable is at hand, or where the

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .._stepper.base import fused
-from .mechanics import mechanics
+from .quantities import mechanics
 
 
 class Release(eqx.Module):

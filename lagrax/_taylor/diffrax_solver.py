@@ -34,7 +34,7 @@ import numpy as np
 from .._compat import unwrap_time
 from .._jaxpr.fusion import one_fusion
 from .._jaxpr.switches import switches
-from .._stepper.taylor import TRUNCATION
+from .._taylor.stepper import TRUNCATION
 from .._trajectory.term import LagrangianTerm
 from . import compact
 
@@ -144,19 +144,26 @@ class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
     )
 
     def error_order(self, terms):
+        """$K + 1$: the order of the step's error estimate."""
         return self.order + 1
 
     def strong_order(self, terms):
+        """None: ordinary differential equations only."""
         return None
 
     def init(self, terms, t0, t1, y0, args):
+        """No state between steps (diffrax's interface)."""
         _ode_term(terms)
         return None
 
     def func(self, terms, t0, y0, args):
+        """The vector field at `(t0, y0)` (diffrax's interface)."""
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        """One Taylor step from `t0` to `t1` (diffrax's interface: the state at
+        `t1`, the error estimate, the polynomial for dense output, no solver state,
+        the result)."""
         del solver_state, made_jump
         from .system import horner, System  # (system imports the recurrences)
 

@@ -13,9 +13,8 @@ one straight-line program that XLA fuses into a few loops (see `_Unrolled`).
 
 The program works on the scalar entries of the state where the jaxpr allows
 (`lagrax._jaxpr.scalarize`): a recurrence over small arrays slices and stacks every
-coefficient at every order, and XLA recomputed shared terms so often that an
-order-10 step of the double pendulum took ~40 µs per lane, against well under 1 µs
-on scalar entries (one core, measured).
+coefficient at every order, and XLA recomputes shared terms so often that such a
+step runs tens of times slower than on scalar entries (benchmarks/README.md).
 """
 
 import math

@@ -1,7 +1,7 @@
 r"""Many trajectories at once: one compiled loop per device over refilling lanes.
 
 `simulate_batch` integrates a batch of releases with `lagrax.Taylor` in one
-`lax.while_loop` per device over `width` lanes, not as `jax.vmap` of a diffrax solve.
+`lax.while_loop` per device over `lanes` lanes, not as `jax.vmap` of a diffrax solve.
 Every iteration advances every lane by one Taylor step computed on the lane-batched
 arrays (the coefficient program of the vector field, unrolled over the orders and
 fused by XLA into one loop over the lanes), with the step length chosen from the
@@ -49,10 +49,10 @@ from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import elemental_options
 from .._jaxpr.switches import switches
 from .._stepper.base import LaneField
-from .._stepper.taylor import log2_approx, TaylorStepper, TRUNCATION
 from .._taylor import compact
-from .._taylor.solver import Taylor
+from .._taylor.stepper import log2_approx, TaylorStepper, TRUNCATION
 from .._taylor.system import System
+from .._taylor.taylor import Taylor
 from .simulate import elemental, simulate
 from .term import _LagrangeVectorField, BoundLagrangian
 
@@ -122,9 +122,8 @@ class SystemTaylorStepper(TaylorStepper):
         stacked = [jnp.stack(x, axis=1), jnp.stack(v, axis=1)]
         # Unrolled, the orders are one vectorized loop over the lanes (through the
         # select of `branch_free`); looped, every order is a few hundred small
-        # loops (a chain of four pendulums, Taylor-16, 64 lanes: ~6 us per
-        # lane-step unrolled, ~50 us looped). The budget bounds the compile
-        # (~45 s for that chain's 244 nodes x 16 orders on one core).
+        # loops, several times slower. The budget bounds the unrolled program's
+        # compile, which grows with its size (benchmarks/README.md).
         unrolled = K * len(self.system.prog.nodes) <= _UNROLL_BUDGET
         coefs = self.system.coefficients(
             K, s, stacked, [field.params], unrolled=unrolled, trig=True
@@ -342,9 +341,8 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, source):
     idx0 = jnp.arange(W, dtype=jnp.int32)
     x, v, p, done = load(idx0)
     ints = jnp.stack([idx0] + [jnp.zeros_like(idx0)] * 3, axis=1)
-    # Lanes with nothing to write aim past the end, and their rows are dropped: a
-    # scatter whose lanes all wrote one spare row ran ~40 ms per iteration on a GPU
-    # (10^4 lanes, the writes to one row serialized), as long as the step itself.
+    # Lanes with nothing to write aim past the end, and their rows are dropped: on
+    # a GPU, a scatter whose lanes all write one spare row serializes those writes.
     saves = jnp.full((B, M, 2 * n), jnp.nan, dtype)
     ends = jnp.full((B, 2 * n + 4), jnp.nan, dtype)
     carry = (x, v, p, ints, done, saves, ends, jnp.int32(W))
@@ -442,7 +440,7 @@ def _looped(devices):
     return lambda cfg, *args: (*fn(cfg, *args), args[-2])
 
 
-def _saveat_plan(saveat, t0, t1):
+def _saveat_plan(saveat):
     """`(ts, save_t1)` for a `SaveAt` the loop supports (states at `ts`, at `t1`, or
     both), else `"vmap"` (then `jax.vmap` of `simulate` runs it: `t0=True`, `steps`,
     `dense`, a `fn`, several `SubSaveAt`s)."""
@@ -473,7 +471,7 @@ def simulate_batch(
     atol=1e-8,
     max_steps: int = 16384,
     throw: bool = True,
-    width: int | None = None,
+    lanes: int | None = None,
     **kwargs,
 ) -> dfx.Solution:
     r"""Integrates Lagrange's equations from a batch of releases, batch axis first.
@@ -481,35 +479,40 @@ def simulate_batch(
     The batched form of `lagrax.simulate`: release $b$ starts at
     $(q_0[b], \dot q_0[b])$ at $t_0[b]$ and ends at $t_1[b]$ (scalars apply to every
     release). With `solver=lagrax.Taylor(...)` (the default, order 20) the batch runs
-    in one compiled loop per device (see the module docstring): step lengths by
-    `lagrax.Taylor`'s rule from the last coefficients with
-    $\varepsilon = \text{atol} + \text{rtol}\,\lVert y\rVert_\infty$ per release
-    (at the same tolerances as accurate as `diffrax.Dopri8`, or more), saved states
-    from the steps' polynomials. Any other solver, or a `SaveAt` or
-    keyword the loop does not take (`t0=True`, `steps`, `dense`, `fn`, `event`,
-    `adjoint`, a `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate`
-    with the same arguments (on a CPU compiled once for the next call with the same
-    `L`, solver and keywords, with XLA's elemental emitters). The loop is compiled
-    per body of `L`: a rebuilt `L` with
-    new parameter values reuses it (they reach it as arguments), and on a CPU a later
-    process loads it from the library's disk cache without tracing it. Under your own
-    `jax.jit` the loop becomes part of your program: on a CPU give that `jit`
-    `compiler_options={"xla_cpu_use_fusion_emitters": False}` (as for `Taylor`;
-    with XLA's default emitters a large loop compiles for minutes: over five for the
-    double pendulum at order 16). Forward mode
-    (`jax.jvp`, `jax.jacfwd`) differentiates it; reverse mode does not (a
-    `lax.while_loop`): for `jax.grad`, `jax.vmap` of `lagrax.simulate` with a
-    diffrax adjoint.
+    in one compiled loop per device over `lanes` lanes, a lane that finishes taking
+    the next release from a queue: step lengths by `lagrax.Taylor`'s rule with
+    $\varepsilon = \text{atol} + \text{rtol}\,\lVert y\rVert_\infty$ per release (at
+    the same tolerances as accurate as `diffrax.Dopri8`, or more), saved states from
+    the steps' polynomials. Any other solver, or a `SaveAt` or keyword the loop does
+    not take (`SaveAt(t0=True)`, `steps`, `dense`, `fn`; `event`, `adjoint`, a
+    `stepsize_controller`, `dt0`), runs `jax.vmap` of `lagrax.simulate` with the same
+    arguments (on a CPU compiled once, for the next call with the same `L`, solver
+    and keywords).
+
+    The loop is compiled per body of `L`: a rebuilt `L` with new parameter values
+    reuses it (they reach it as arguments), and on a CPU a later process loads it
+    from the library's disk cache. A new Lagrangian's first eager calls on a CPU may
+    run on a compact program shared by Lagrangians of a size class, until the time
+    spent there would pay for its own program's compile. Under your own `jax.jit` the
+    loop becomes part of your program: on a CPU give that `jit`
+    `compiler_options={"xla_cpu_use_fusion_emitters": False}` (XLA's elemental
+    emitters, which eager calls take): with the default emitters a large loop (the
+    double pendulum at order 16) compiles several times longer. Forward mode (`jax.jvp`,
+    `jax.jacfwd`) differentiates it; reverse mode does not (a `lax.while_loop`): for
+    `jax.grad`, `jax.vmap` of `lagrax.simulate` with a diffrax adjoint. Speed against
+    heyoka.py: `benchmarks/README.md`.
 
     `lagrax.Taylor(fallback=...)` batches with its fallback where L has a primitive
     without a Taylor recurrence, as in `lagrax.simulate`.
 
     **Arguments:** as `lagrax.simulate`, with `q0`, `qdot0` of shape `(B, n)`,
-    `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, and
+    `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, `solver` by default
+    `lagrax.Taylor()` (the solver the loop is built for; `simulate`'s default,
+    `Tsit5()`, would run as `jax.vmap` of `simulate`), and
 
-    - `width`: lanes of the compiled loop per device; by default 256 on a CPU and,
-        on a GPU, every release of a device's share up to 131,072 (an H200, 10^6
-        double pendulums: 1.0 M trajectories/s; 256 lanes leave it mostly idle).
+    - `lanes`: lanes of the compiled loop per device (static); by default 256 on a
+        CPU and, on a GPU, every release of a device's share up to 131,072 (a GPU
+        needs many lanes in flight).
 
     **Returns:**
 
@@ -540,7 +543,7 @@ def simulate_batch(
         # and the caller allowed the fallback to step instead.
         kwargs = dict(
             force=force, saveat=saveat, rtol=rtol, atol=atol, max_steps=max_steps,
-            throw=throw, width=width, **kwargs,
+            throw=throw, lanes=lanes, **kwargs,
         )  # fmt: skip
         try:
             taylor = dataclasses.replace(solver, fallback=None)
@@ -558,18 +561,18 @@ def simulate_batch(
     dtype = jnp.result_type(q0, qdot0)
     q0, qdot0 = q0.astype(dtype), qdot0.astype(dtype)
     B = q0.shape[0]
-    lanes = lambda x, name: _per_release(x, name, B, dtype)
-    t0, t1 = lanes(t0, "t0"), lanes(t1, "t1")
-    rtol = lanes(_positive(rtol, "rtol", dtype), "rtol")
-    atol = lanes(_positive(atol, "atol", dtype), "atol")
+    per_release = lambda x, name: _per_release(x, name, B, dtype)
+    t0, t1 = per_release(t0, "t0"), per_release(t1, "t1")
+    rtol = per_release(_positive(rtol, "rtol", dtype), "rtol")
+    atol = per_release(_positive(atol, "atol", dtype), "atol")
     max_steps = positive_int(max_steps, "max_steps")
     # One loop per device, each over its share of the releases.
     devices = tuple(jax.local_devices())
     D = len(devices) if B >= len(devices) else 1
-    width = lane_count(
-        width, "width", devices, -(-B // D), cpu=256, accelerator=1 << 17
+    lanes = lane_count(
+        lanes, "lanes", devices, -(-B // D), cpu=256, accelerator=1 << 17
     )
-    plan = _saveat_plan(saveat, t0, t1)
+    plan = _saveat_plan(saveat)
     if not isinstance(solver, Taylor) or plan == "vmap" or kwargs:
         # (Keyed on what L computes: a rebuilt L with new parameter values reuses
         # the program, its values as arguments.)
@@ -595,7 +598,7 @@ def simulate_batch(
         L=L_c,
         force=force,
         order=solver.order,
-        width=width,
+        width=lanes,
         n_save=0 if ts is None else int(ts.shape[0]),
         save_t1=save_t1,
         max_steps=max_steps,
@@ -729,7 +732,7 @@ def _compact_mode() -> str:
 def _compact_applies() -> bool:
     """Whether the compact tier may be taken: on a CPU (executables are kept on
     disk for one process's CPU devices), unless `LAGRAX_COMPACT=0`."""
-    return _compact_mode() != "0" and executables._applies()
+    return _compact_mode() != "0" and executables.applies()
 
 
 def _known(jitted, options, origin, args) -> bool:

@@ -32,7 +32,7 @@ from .._custom_types import Coordinates, GeneralizedForce, Lagrangian, RealScala
 from .._eom.mechanics import _accelerations, _accelerations_jit
 from .._jaxpr.canonical import canonical_lagrangian, CanonicalLagrangian
 from .._jaxpr.fusion import elemental_options
-from .._taylor.solver import Taylor
+from .._taylor.taylor import Taylor
 from .term import _LagrangeVectorField, BoundLagrangian, LagrangianTerm
 
 

@@ -16,8 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._taylor.program import taylor_coefficients
-from .base import (
+from .._stepper.base import (
     abs_max,
     AbstractStepper,
     fused,
@@ -28,6 +27,7 @@ from .base import (
     TaylorExpansion,
     within_or_identity,
 )
+from .program import taylor_coefficients
 
 
 # The trajectories' step (`simulate_batch`, `Taylor` as a diffrax solver): the first
@@ -61,7 +61,7 @@ class TaylorStepper(AbstractStepper):
 
     (the last four orders instead of two: from rest $x(s)$ is even, its odd
     coefficients vanish, and the last two orders would rest on one number that passes
-    through zero as the amplitude varies, a first step too long by 1.4x on some
+    through zero as the amplitude varies, a first step too long on some
     amplitudes). With `truncation` $= C$ (trajectories),
     $f = (\varepsilon/C)^{1/(K+1)}$: the first term the step drops, extrapolated as
     $(h/\rho)^{K+1}$, is $\varepsilon/C$.

@@ -9,8 +9,8 @@ for every Lagrangian of the tape's size class.
 
 import jax.numpy as jnp
 
-from .._taylor.compact import compact_coefficients
-from .taylor import TaylorStepper
+from .compact import compact_coefficients
+from .stepper import TaylorStepper
 
 
 class CompactTaylorStepper(TaylorStepper):
