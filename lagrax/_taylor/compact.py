@@ -306,6 +306,13 @@ def _bucket(n, smallest=1):
     return max(smallest, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
 
+def _bucket3(n, smallest=1):
+    """The smallest power of two, or three times one, at least `n` (and `smallest`):
+    for a size that costs in proportion at every order (the history rows)."""
+    p = _bucket(n)
+    return max(smallest, 3 * p // 4 if p >= 4 and 3 * p // 4 >= n else p)
+
+
 class _Builder:
     """`_Program` (or `_SystemProgram`) -> compact nodes over integer ids."""
 
@@ -702,7 +709,7 @@ def build(
     B1 = {
         form: _bucket(len(blocks1[form]), minimum.get(f"B1{form}", 1)) for form in forms
     }
-    H = _bucket(rows + Gc, minimum.get("H", 16))
+    H = _bucket3(rows + Gc, minimum.get("H", 16))
     P = max(len(b.params), minimum.get("p", 0))
     fams = tuple(sorted(set(fams) | set(minimum.get("families", ()))))
     for f in fams:
