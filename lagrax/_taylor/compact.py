@@ -1222,7 +1222,8 @@ def compact_coefficients(
     # (Every slot a block writes is written at every order before it is read;
     # the others, constants and parameters, are zero above order 0.)
     carry = (jnp.zeros_like(Y), Hp, Hq, Z)
-    Z = lax.fori_loop(1, K, order, carry)[3]
+    if K > 1:  # (K = 1: the acceleration alone, no order to recur)
+        Z = lax.fori_loop(1, K, order, carry)[3]
     return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
 
 
