@@ -709,7 +709,7 @@ def build(
     B1 = {
         form: _bucket(len(blocks1[form]), minimum.get(f"B1{form}", 1)) for form in forms
     }
-    H = _bucket3(rows + Gc, minimum.get("H", 16))
+    H = _bucket3(rows + max(Gc, _CHUNK), minimum.get("H", 16))
     P = max(len(b.params), minimum.get("p", 0))
     fams = tuple(sorted(set(fams) | set(minimum.get("families", ()))))
     for f in fams:
@@ -838,7 +838,7 @@ def build(
         dout=as_i(dout),
         hist=as_i(hist),
         seq1=as_i(seq1),
-        blocks=as_i([len(levels0), len(seq)]),
+        blocks=as_i([len(levels0), len(seq), rows]),
         hcst=np.asarray(hcst),
         hslot=as_i(hslot),
         families=fams,
@@ -1019,13 +1019,14 @@ def _bound(x):
 
 
 def bounds(tape) -> tuple | None:
-    """The loop bounds of a concrete tape, `(seg0, blocks)` as Python ints (None
+    """The loop bounds of a concrete tape, `(seg0, blocks, rows)` as Python ints (None
     where the tape is traced)."""
     if isinstance(tape.blocks, jax.core.Tracer) or isinstance(
         tape.seg0, jax.core.Tracer
     ):
         return None
-    return tuple(int(x) for x in np.asarray(tape.seg0)), int(np.asarray(tape.blocks)[1])
+    blocks = np.asarray(tape.blocks)
+    return tuple(int(x) for x in np.asarray(tape.seg0)), int(blocks[1]), int(blocks[2])
 
 
 def _order0(tape, Y, D, trig, seg=None):
@@ -1087,21 +1088,45 @@ def _tree_sum(xs):
     return xs[0]
 
 
-def _inner_sums(K):
+# History rows up to which the inner terms run over every row at once; beyond, in
+# chunks of `_CHUNK` rows up to the rows in use (a small system in a large size
+# class, e.g. a pendulum in the period tier's, would sum mostly padding).
+_ALL_ROWS = 64
+_CHUNK = 8
+
+
+def _inner_sums(K, H, chunks):
     r"""Per order $k = 1..K-1$, a function of the histories (`Hp`, `Hq`: `(K, H,
     W)`, order first) and the rows' weights `(u0, u1)` giving every row's Cauchy
     terms strictly inside the sum, $\sum_{j=1}^{k-1} (u_0 + u_1 j / k)\, P_j
     Q_{k-j}$: one branch per order (a switch), so that each sums exactly its
-    terms, over all rows at once."""
+    terms; over all rows at once where `H > _ALL_ROWS`, else over `chunks` chunks
+    of `_CHUNK` rows."""
+
+    def terms(k, p, q, u0, u1):
+        pq = [p[j] * q[k - j] for j in range(1, k)]
+        plain = _tree_sum(pq)
+        weighted = _tree_sum([float(j) * x for j, x in enumerate(pq, 1)])
+        return u0 * plain + u1 * (weighted * (1.0 / k))
 
     def branch(k):
         def fn(Hp, Hq, u0, u1):
             if k == 1:
                 return jnp.zeros_like(u0)
-            pq = [Hp[j] * Hq[k - j] for j in range(1, k)]
-            plain = _tree_sum(pq)
-            weighted = _tree_sum([float(j) * x for j, x in enumerate(pq, 1)])
-            return u0 * plain + u1 * (weighted * (1.0 / k))
+            if H > _ALL_ROWS:
+                return terms(k, Hp, Hq, u0, u1)
+
+            def chunk(c, out):
+                r = (c * _CHUNK).astype(jnp.int32)
+                zero = jnp.zeros((), jnp.int32)
+                part = lambda x: lax.dynamic_slice(
+                    x, (zero, r, zero), (k, _CHUNK, x.shape[2])
+                )
+                rows = lambda x: lax.dynamic_slice_in_dim(x, r, _CHUNK)
+                value = terms(k, part(Hp), part(Hq), rows(u0), rows(u1))
+                return lax.dynamic_update_slice_in_dim(out, value, r, 0)
+
+            return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
 
         return fn
 
@@ -1183,7 +1208,7 @@ def compact_coefficients(
     `trig`: float64 sines and cosines at order 0 by `lagrax._jaxpr.trig.sincos`
     (vectorized) instead of the C library's. `bounds`: the tape's loop bounds as
     Python ints (`bounds`), for a tape passed traced (each loop then a `scan`)."""
-    seg, blocks = (None, None) if bounds is None else bounds
+    seg, blocks, rows = (None, None, None) if bounds is None else bounds
     tape = jax.tree.map(jnp.asarray, tape)
     W = t.shape[0]
     dtype = t.dtype
@@ -1203,7 +1228,8 @@ def compact_coefficients(
     Hq = jnp.zeros((K, H, W), dtype).at[0].set(Q0)
     Z = jnp.zeros((m - 1, K + 1, W), dtype)
     Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(Y[tape.outs])
-    sums = _inner_sums(K)
+    rows = _bound(tape.blocks[2]) if rows is None else rows
+    sums = _inner_sums(K, H, (rows + _CHUNK - 1) // _CHUNK)
 
     def order(k, carry):
         Y, Hp, Hq, Z = carry
