@@ -168,7 +168,9 @@ def work_lagrax(args):
     ref = np.asarray(json.load(open(args.reference))["ys"])
 
     def ys_of(sol):
-        return np.concatenate([np.asarray(sol.ys[0][:, -1]), np.asarray(sol.ys[1][:, -1])], 1)
+        return np.concatenate(
+            [np.asarray(sol.ys[0][:, -1]), np.asarray(sol.ys[1][:, -1])], 1
+        )
 
     t = time.perf_counter()
     call(args.bound)
@@ -206,7 +208,9 @@ def _coefficient_cost(jax, args, steps=10, repeats=7):
     from lagrax._trajectory import batch
 
     n = tr.SYSTEMS[args.system]["n"]
-    L_c, consts = canonical_lagrangian(tr._lagrax_lagrangian(args.system), jnp.float64, n)
+    L_c, consts = canonical_lagrangian(
+        tr._lagrax_lagrangian(args.system), jnp.float64, n
+    )
     tape, _ = batch._tape(L_c, tuple(consts), None, n, jnp.float64)
     W, K = args.width, args.order
     rng = np.random.default_rng(0)
@@ -273,17 +277,31 @@ def work_pair(args):
             t = time.perf_counter()
             fn()
             times[side].append(time.perf_counter() - t)
-    rows = [dict(side=f"{side}, alternated", run_s=min(ts), run_median_s=float(np.median(ts)),
-                 run_max_s=max(ts)) for side, ts in times.items()]  # fmt: skip
-    rows.append(dict(side="lagrax / heyoka.py compact, alternated",
-                     ratio_min=min(times["lagrax compact"]) / min(times["heyoka.py compact"]),
-                     ratio_median=float(np.median(times["lagrax compact"])
-                                        / np.median(times["heyoka.py compact"]))))  # fmt: skip
+    rows = [
+        dict(
+            side=f"{side}, alternated",
+            run_s=min(ts),
+            run_median_s=float(np.median(ts)),
+            run_max_s=max(ts),
+        )
+        for side, ts in times.items()
+    ]
+    ours, theirs = times["lagrax compact"], times["heyoka.py compact"]
+    rows.append(
+        dict(
+            side="lagrax / heyoka.py compact, alternated",
+            ratio_min=min(ours) / min(theirs),
+            ratio_median=float(np.median(ours) / np.median(theirs)),
+        )
+    )
     return rows
 
 
 WORKERS = dict(
-    heyoka=work_heyoka, lagrax=work_lagrax, lagrax_first=work_lagrax_first, pair=work_pair
+    heyoka=work_heyoka,
+    lagrax=work_lagrax,
+    lagrax_first=work_lagrax_first,
+    pair=work_pair,
 )
 
 
@@ -294,7 +312,9 @@ def spawn(args, kind, system, env=None, **extra):
         cmd += [f"--{key.replace('_', '-')}", str(getattr(args, key))]
     for key, value in extra.items():
         cmd += [f"--{key.replace('_', '-')}", str(value)]
-    out = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env={**os.environ, **(env or {})})
+    out = subprocess.run(
+        cmd, stdout=subprocess.PIPE, text=True, env={**os.environ, **(env or {})}
+    )
     if out.returncode:
         print(f"  ({kind} {system} failed)", file=sys.stderr)
         return []
@@ -319,15 +339,22 @@ def reference(system):
 
 def main():
     p = argparse.ArgumentParser()
-    p.add_argument("--systems", nargs="+",
-                   default=["double_pendulum", "chain2", "chain4", "chain6", "chain8"])
+    p.add_argument(
+        "--systems",
+        nargs="+",
+        default=["double_pendulum", "chain2", "chain4", "chain6", "chain8"],
+    )
     p.add_argument("--bound", type=float, default=1e-9)
     p.add_argument("--width", type=int, default=64)
     p.add_argument("--order", type=int, default=16)
     p.add_argument("--core", type=int, default=1)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--heyoka-default-max", type=int, default=6,
-                   help="the largest n whose heyoka.py default mode is built")
+    p.add_argument(
+        "--heyoka-default-max",
+        type=int,
+        default=6,
+        help="the largest n whose heyoka.py default mode is built",
+    )
     p.add_argument("--worker")
     p.add_argument("--system")
     p.add_argument("--reference")
