@@ -36,6 +36,18 @@ in float64 (`taylor_adaptive_batch` at its tol, SIMD width `recommended_simd_siz
     python benchmarks/accuracy.py [--quick] [--systems kepler] [--tols 1e-10 1e-12]
 
 Writes `results/accuracy[_quick].json`.
+
+With `--periods`: the period sweeps' per-lane error estimates instead
+(`sweep_periods`, every method with `Taylor()` and `Dopri8`; the pendulum's 2047
+amplitudes 0.01 .. pi - 1e-3 and the asymmetric well's 256 releases to 0.99 of its
+hump, against 40-digit periods): per system, method, stepper and rtol the lanes'
+statuses, the true errors, and the estimate over the true error (median, 5th
+percentile, smallest, lanes below the truth).
+
+    python benchmarks/accuracy.py --periods [--tols 1e-13 1e-10] \
+        [--period-methods half] [--period-solvers Dopri8]
+
+Writes `results/accuracy_periods[_quick].json`.
 """
 
 import argparse

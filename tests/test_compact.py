@@ -216,6 +216,22 @@ def test_equals_hand_written_equations(shared, name):
     _close(got, _jet(accel, n, K, *point), 1e-12)
 
 
+@pytest.mark.parametrize("order", [1, 2])
+def test_low_orders_are_the_leading_coefficients(shared, order):
+    """Orders 1 and 2 (the acceleration alone; no Cauchy term inside a sum): the
+    leading coefficients of order K's."""
+    _, tapes, _ = shared
+    point = _point(2, seed=2)
+    low = compact.compact_coefficients(
+        tapes["double_pendulum"], order, *map(jnp.asarray, point[:1]),
+        [jnp.asarray(y) for y in point[1]], [jnp.asarray(point[2])],
+    )  # fmt: skip
+    full = jax.jit(_run)(tapes["double_pendulum"], *point)
+    np.testing.assert_allclose(
+        np.asarray(low), np.asarray(full)[:, : order + 1], rtol=1e-13, atol=1e-15
+    )
+
+
 def test_unrolled_time_dependent_coefficients():
     """The unrolled program reads $t$'s coefficient $k$ afresh at every order
     ($t_k = 0$ for $k \\ge 2$)."""

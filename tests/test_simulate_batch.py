@@ -145,6 +145,26 @@ def test_other_solvers_run_vmap_of_simulate():
     np.testing.assert_allclose(staged, sol.ys[0][:, -1], rtol=1e-12, atol=1e-14)
 
 
+def test_taylor_steps_with_its_fallback_where_it_has_no_recurrence():
+    # asinh has no Taylor recurrence: Taylor() names it, Taylor(fallback=...) is the
+    # fallback's batch, as in `simulate`.
+    L = lambda q, qd, t: 0.5 * jnp.sum(qd**2) - jnp.sum(jnp.arcsinh(q) ** 2)
+    q0, v0 = np.array([[0.5], [-1.0], [2.0]]), np.zeros((3, 1))
+    kw = dict(rtol=1e-10, atol=1e-10)
+    with pytest.raises(NotImplementedError, match="asinh"):
+        lagrax.simulate_batch(L, q0, v0, 0.0, 2.0, solver=lagrax.Taylor(), **kw)
+    taylor = lagrax.Taylor(fallback=dfx.Tsit5())
+    want = lagrax.simulate_batch(L, q0, v0, 0.0, 2.0, solver=dfx.Tsit5(), **kw)
+    got = lagrax.simulate_batch(L, q0, v0, 0.0, 2.0, solver=taylor, **kw)
+    assert np.all(np.asarray(got.result == dfx.RESULTS.successful))
+    np.testing.assert_array_equal(got.ys[0], want.ys[0])
+    np.testing.assert_array_equal(got.ys[1], want.ys[1])
+    # A Lagrangian Taylor steps is unchanged by the fallback.
+    plain = lagrax.simulate_batch(oscillator, q0, v0, 0.0, 2.0, **kw)
+    same = lagrax.simulate_batch(oscillator, q0, v0, 0.0, 2.0, solver=taylor, **kw)
+    np.testing.assert_array_equal(same.ys[0], plain.ys[0])
+
+
 def test_bad_shapes():
     with pytest.raises(ValueError, match=r"shape \(B, n\)"):
         lagrax.simulate_batch(oscillator, np.zeros(3), np.zeros(3), 0.0, 1.0)

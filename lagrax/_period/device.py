@@ -8,7 +8,7 @@ from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array, Float, Int
 
 from .._results import SUCCESS, TOLERANCE_NOT_MET
-from .estimate import LOOSER, PROMISE, second_solve_estimate
+from .estimate import PROMISE, second_solve_estimate, TIGHTER
 from .finish import blame_coordinates
 from .methods import run_method
 
@@ -65,7 +65,7 @@ def device_periods(L, m, q0, consts, rtol, atol, t_max, energy_tol) -> Periods:
     `m.screened` the estimate is the first-order bound, and a second solve only of
     the lanes it cannot vouch for (`run_method`); otherwise the estimate's second
     solve runs in the same queue as the first (the second half of the lanes, at
-    looser tolerances): one compiled kernel, balanced work."""
+    tighter tolerances): one compiled kernel, balanced work."""
     n = q0.shape[0]
     full = lambda x, k: jnp.full((n,), k * x, q0.dtype)
 
@@ -77,18 +77,19 @@ def device_periods(L, m, q0, consts, rtol, atol, t_max, energy_tol) -> Periods:
         out = solve(q0, full(rtol, 1.0), full(atol, 1.0), 0.0, True)
         T, status, steps, q_far = out.periods, out.status, out.steps, out.q_far
         # The bound where it vouches for a lane; the second solve's estimate where not.
-        est2 = second_solve_estimate(T, status, out.periods2, out.status2)
+        T2, status2 = out.periods2, out.status2
+        est2 = second_solve_estimate(T, status, T2, status2, rtol, m.stepper)
         est = jnp.where(out.redo, est2, out.bound)
     elif m.estimate:
         lanes = jnp.concatenate([q0, q0])
-        rtols = jnp.concatenate([full(rtol, 1.0), full(rtol, LOOSER)])
-        atols = jnp.concatenate([full(atol, 1.0), full(atol, LOOSER)])
+        rtols = jnp.concatenate([full(rtol, 1.0), full(rtol, TIGHTER)])
+        atols = jnp.concatenate([full(atol, 1.0), full(atol, TIGHTER)])
         shift = jnp.concatenate([jnp.zeros(n, q0.dtype), jnp.ones(n, q0.dtype)])
         out = solve(lanes, rtols, atols, shift)
         T, T2 = out.periods[:n], out.periods[n:]
         status, status2 = out.status[:n], out.status[n:]
         steps, q_far = out.steps[:n] + out.steps[n:], out.q_far[:n]
-        est = second_solve_estimate(T, status, T2, status2)
+        est = second_solve_estimate(T, status, T2, status2, rtol, m.stepper)
     else:
         out = solve(q0, full(rtol, 1.0), full(atol, 1.0), 0.0)
         status = blame_coordinates(L, consts, q0, out.q_far, out.status)

@@ -8,7 +8,7 @@ energy error, which moves the end of the leg by its leverage $\int ds/\dot q^2$ 
 the rest of it (Gauss–Legendre on the step's velocity polynomial); and the far
 turning point's band times $d\tau/dE$, the finite part of that integral from rest.
 Lanes it cannot vouch for, and every other method and stepper, are solved a second
-time at `LOOSER` times the tolerances (`second_solve_estimate`).
+time at `TIGHTER` times the tolerances (`second_solve_estimate`).
 """
 
 import functools
@@ -21,19 +21,32 @@ from jaxtyping import Array, Float
 
 from .._results import SUCCESS
 from .._stepper.base import horner
+from .._taylor.stepper import TaylorStepper
 
 
-# The second solve: at `LOOSER` times the tolerances (for "matched", from the far
-# turning point moved across its rounding band), and `_SAFETY` times the difference.
-# Calibrated on exact periods (tests/test_estimate.py).
-LOOSER = 10.0
-_SAFETY = 3.0
+# The second solve: at `TIGHTER` times the tolerances (for "matched", from the far
+# turning point moved across its rounding band), nearer the truth than the first by
+# about that factor, so the difference is about the first solve's error: `_SAFETY`
+# times it, plus a fraction of rtol (`_FLOOR_RTOL`, per stepper: a lane whose error
+# happens to cancel at one tolerance and not at the other, where the two solves agree
+# more closely than either agrees with the truth; more often with the few long steps
+# of a Taylor step), plus `_FLOOR_ULPS` ulps. Calibrated on exact periods
+# (benchmarks/accuracy.py --periods, tests/test_estimate.py).
+TIGHTER = 0.1
+_SAFETY = 4.0
+_FLOOR_RTOL = {"taylor": 0.1, "runge_kutta": 0.02}
+_FLOOR_ULPS = 16.0
 #: A lane's period is trusted when its estimate is below this many times rtol.
 PROMISE = 100.0
-# The first-order bound: its safety factor, and the largest leverage ∫ds/v² (lane
-# units) of a leg past its first step for which it is used: beyond, rounding of the
-# force, which it does not model, may be amplified (near a hump).
-_SCREEN_SAFETY = 3.0
+# The first-order bound: the safety factors of its terms (a time shift along the
+# orbit and an energy error times its leverage; each from the steps' rounding and
+# their truncation bound), and the largest leverage ∫ds/v² (lane units) of a leg past
+# its first step for which it is used: beyond, rounding of the force, which it does
+# not model, may be amplified (near a hump). Rounding weighs more than truncation:
+# near a hump its share of the energy error is amplified coherently, while the
+# truncation terms are each a bound of the step's own error.
+_SHIFT_SAFETY = (3.0, 2.0)  # (rounding, truncation)
+_ENERGY_SAFETY = (2.0, 1.5)
 _SCREEN_LEVERAGE = 100.0
 
 _GL3 = tuple((float(x), float(w)) for x, w in zip(*np.polynomial.legendre.leggauss(3)))
@@ -117,15 +130,18 @@ def step_terms(stepper, expansion, v, h, a_end) -> StepTerms:
 
 def step_increments(sums, terms: StepTerms, step, v):
     """What a step adds to the sums: its errors (truncation bound plus rounding of the
-    state) as a time shift δx/|v| and an energy error per unit mass |v|δv + |a|δx;
-    an energy error made before this step moves the leg's end by its leverage
-    ∫ds/v² over the rest of the leg."""
+    state, each times its safety factor) as a time shift δx/|v| and an energy error
+    per unit mass |v|δv + |a|δx; an energy error made before this step moves the
+    leg's end by its leverage ∫ds/v² over the rest of the leg."""
     eps = jnp.finfo(v.dtype).eps
     x1, v1, a1, h, W = step.x, step.v, step.a, step.h, terms.W
-    x_err = terms.dq + 4 * eps * (1.0 + jnp.abs(x1))
-    v_err = terms.dv + 4 * eps * (jnp.abs(v1) + jnp.abs(h * a1))
-    e_err = jnp.abs(v1) * v_err + jnp.abs(a1) * x_err
-    shift_ = x_err / jnp.abs(v1)
+    x_round = 4 * eps * (1.0 + jnp.abs(x1))
+    v_round = 4 * eps * (jnp.abs(v1) + jnp.abs(h * a1))
+    (rs, ts), (re, te) = _SHIFT_SAFETY, _ENERGY_SAFETY
+    shift_ = (ts * terms.dq + rs * x_round) / jnp.abs(v1)
+    e_err = jnp.abs(v1) * (te * terms.dv + re * v_round) + jnp.abs(a1) * (
+        te * terms.dq + re * x_round
+    )
     from_rest = v == 0
     inc = (shift_, sums[:, 4] * W, W, jnp.where(from_rest, 0.0, W), e_err)
     return jax.lax.stop_gradient(jnp.stack(inc, axis=1))
@@ -150,10 +166,11 @@ def screen(T, t_a, t_b, terms_a: BoundTerms, terms_b: BoundTerms, band, rtols):
     eps = jnp.finfo(T.dtype).eps
     T, t_a, t_b, band = jax.lax.stop_gradient((T, t_a, t_b, band))
     a, b = terms_a, terms_b
-    err = 2 * (a.ph + a.J + b.ph + b.J) + 16 * eps * (t_a + t_b)
-    # (The band is itself a bound on the root's rounding: no safety factor on it.)
+    # (The sums carry their safety factors; the band is itself a bound on the
+    # root's rounding: none on it.)
+    err = 2 * (a.ph + a.J + b.ph + b.J)
     far = 2 * band * jnp.abs(b.F)
-    bound = (_SCREEN_SAFETY * err + far) / jnp.abs(T) + 64 * eps
+    bound = (err + far) / jnp.abs(T) + 4 * eps
     usable = (a.G <= _SCREEN_LEVERAGE) & (b.G <= _SCREEN_LEVERAGE)
     usable = usable & jnp.isfinite(bound) & jnp.isfinite(band)
     return jnp.where(usable, bound, jnp.inf)
@@ -165,8 +182,8 @@ def screen_quarter(T, t_a, terms: BoundTerms):
     which the method checks to the tolerance, is assumed)."""
     eps = jnp.finfo(T.dtype).eps
     T, t_a = jax.lax.stop_gradient((T, t_a))
-    err = 4 * (terms.ph + terms.J) + 32 * eps * t_a
-    bound = _SCREEN_SAFETY * err / jnp.abs(T) + 64 * eps
+    err = 4 * (terms.ph + terms.J)
+    bound = err / jnp.abs(T) + 4 * eps
     usable = (terms.G <= _SCREEN_LEVERAGE) & jnp.isfinite(bound)
     return jnp.where(usable, bound, jnp.inf)
 
@@ -176,10 +193,13 @@ def needs_second_solve(status, bound, rtols):
     return (status == SUCCESS) & ~(bound <= PROMISE * rtols)
 
 
-def second_solve_estimate(T, status, T2, status2):
-    """The estimate from a second solve at looser tolerances: `_SAFETY` times the
-    relative difference plus 64 ulps; infinite where the looser solve failed and
+def second_solve_estimate(T, status, T2, status2, rtols, stepper):
+    """The estimate from a second solve at `TIGHTER` times the tolerances:
+    `_SAFETY` times the relative difference, plus a fraction of rtol (`_FLOOR_RTOL`
+    for `stepper`) and `_FLOOR_ULPS` ulps; infinite where the second solve failed and
     the requested one did not (that says nothing sure)."""
     eps = jnp.finfo(T.dtype).eps
-    est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + 64 * eps
+    kind = "taylor" if isinstance(stepper, TaylorStepper) else "runge_kutta"
+    est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + _FLOOR_RTOL[kind] * rtols
+    est = est + _FLOOR_ULPS * eps
     return jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)

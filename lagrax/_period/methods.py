@@ -21,7 +21,7 @@ from .._results import (
 )
 from .._stepper.base import AbstractStepper
 from .._taylor.stepper import TaylorStepper
-from .estimate import LOOSER, needs_second_solve, screen, screen_quarter
+from .estimate import needs_second_solve, screen, screen_quarter, TIGHTER
 from .events import MAX_SPEED, POSITION, TURNING
 from .far_turning_point import far_turning_point
 from .kernel import Lanes, PassResult, run_pass
@@ -162,7 +162,7 @@ def run_method(
     "matched", how many rounding bands to move each far turning point.
 
     `screened` ("matched" with a Taylor step and the error estimate): the first-order
-    error bound of each lane (`estimate.screen`), and a second solve, at `LOOSER`
+    error bound of each lane (`estimate.screen`), and a second solve, at `TIGHTER`
     times the tolerances from the far turning point moved across its band, of only
     the lanes that bound cannot vouch for, in the same loop."""
     zeros = jnp.zeros_like(q0)
@@ -253,7 +253,7 @@ def _pack(out: MethodResult, dtype):
 
 def _second_round(lanes0: Lanes, status, bound) -> tuple[Lanes, Array, Array]:
     """After the first round: the lanes its bound cannot vouch for, first (their
-    positions `pos`), at looser tolerances; the others are not loaded."""
+    positions `pos`), at tighter tolerances; the others are not loaded."""
     q0, rtols, atols = lanes0.q0, lanes0.rtol, lanes0.atol
     n = q0.shape[0]
     redo = needs_second_solve(status, bound, rtols)
@@ -270,8 +270,8 @@ def _second_round(lanes0: Lanes, status, bound) -> tuple[Lanes, Array, Array]:
         jnp.where(live, sg(q0)[perm], jnp.nan),
         lanes0.target,
         _kinds(q0, MAX_SPEED),
-        LOOSER * rtols[perm],
-        LOOSER * atols[perm],
+        TIGHTER * rtols[perm],
+        TIGHTER * atols[perm],
         live,
     )
     return lanes, pos, count
@@ -342,7 +342,7 @@ def _matched_screened(solve: _Solve, lanes0: Lanes, rtols, atols) -> MethodResul
 
 def _quarter_screened(solve: _Solve, lanes0: Lanes, rtols) -> MethodResult:
     """ "quarter" with the first-order bound (one leg of "matched"'s): a second
-    round, at `LOOSER` times the tolerances, of only the lanes the bound cannot
+    round, at `TIGHTER` times the tolerances, of only the lanes the bound cannot
     vouch for; both rounds through one instance of the kernel (a while loop over
     the passes, as `_matched`)."""
     dtype = lanes0.q0.dtype

@@ -22,9 +22,12 @@ recurrences run in ONE program per *size class*, the equations being data (a
     lower levels); a level is blocks of `Gc` Cauchy nodes, then of `Gl` linear
     nodes with constant and with per-lane coefficients, each block one vectorized
     operation over its nodes and lanes: its operands gathered by index arrays,
-    its outputs one contiguous slice of the values of order $k$. The Cauchy sums
-    read the orders below $k$ from *histories* stored once per order, zero where
-    not yet computed, so a sum over a fixed window of terms is exact.
+    its outputs one contiguous slice of the values of order $k$. A Cauchy sum's
+    terms $0 < j < k$ read only orders below $k$: they are summed before the
+    levels, once per order for every Cauchy node at once, from *histories* (the
+    operands' coefficients, stored order by order), one function per order (a
+    switch) so that each sums exactly its terms; a block adds the terms $j = 0,
+    k$ with its operands of order $k$.
 - Order 0 runs level by level too, each level's nodes in blocks of one *family*
     (affine, other arithmetic, logic, sine and cosine, other transcendental, a
     mass-matrix factorization), evaluating the primitives and setting the
@@ -189,11 +192,14 @@ class CompactTape(eqx.Module):
     inverse's entries go, as flat indices into the per-lane coefficients; `fac_ok`
     its verdict's slot).
 
-    Orders $\ge 1$: `lev1[level]` the ranges of its Cauchy, constant-linear and
-    per-lane-linear blocks: `cgat`, `sgat`, `dgat` their operands, `cout` (first
-    output, first history row), `sout`, `dout`; `cst`, `sst` their constant
-    coefficients; `hist` the slots whose histories the Cauchy sums read (each
-    row's $P$ and $Q$). `blocks`: the levels in use at order 0 and above.
+    Orders $\ge 1$: `seq1` the blocks in the level order (`(kind, block,
+    count)`) of Cauchy, constant-linear and per-lane-linear nodes: `cgat`,
+    `sgat`, `dgat` their operands, `cout` (first output, first history row),
+    `sout`, `dout`; `sst` the constant coefficients of linear nodes; `hist` the
+    slots whose histories the Cauchy sums read (each row's $P$ and $Q$), `hcst`
+    each row's constants $(c_0, c_1)$ and whether it weighs its plain and its
+    weighted sum, `hslot` its node's slot. `blocks`: the blocks in use at order 0
+    and above.
     """
 
     values: jax.Array
@@ -212,7 +218,6 @@ class CompactTape(eqx.Module):
     fac_ok: jax.Array
     cgat: jax.Array
     cout: jax.Array
-    cst: jax.Array
     sgat: jax.Array
     sout: jax.Array
     sst: jax.Array
@@ -221,6 +226,8 @@ class CompactTape(eqx.Module):
     hist: jax.Array
     seq1: jax.Array
     blocks: jax.Array
+    hcst: jax.Array
+    hslot: jax.Array
     families: tuple = eqx.field(static=True)
     caps0: tuple = eqx.field(static=True)  # (order-0 blocks per family)
 
@@ -297,6 +304,13 @@ class _Factor:
 def _bucket(n, smallest=1):
     """The smallest power of two at least `n` (and `smallest`)."""
     return max(smallest, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
+
+
+def _bucket3(n, smallest=1):
+    """The smallest power of two, or three times one, at least `n` (and `smallest`):
+    for a size that costs in proportion at every order (the history rows)."""
+    p = _bucket(n)
+    return max(smallest, 3 * p // 4 if p >= 4 and 3 * p // 4 >= n else p)
 
 
 class _Builder:
@@ -695,7 +709,7 @@ def build(
     B1 = {
         form: _bucket(len(blocks1[form]), minimum.get(f"B1{form}", 1)) for form in forms
     }
-    H = _bucket(rows + Gc, minimum.get("H", 16))
+    H = _bucket3(rows + max(Gc, _CHUNK), minimum.get("H", 16))
     P = max(len(b.params), minimum.get("p", 0))
     fams = tuple(sorted(set(fams) | set(minimum.get("families", ()))))
     for f in fams:
@@ -763,7 +777,8 @@ def build(
     # Orders >= 1.
     cgat = np.zeros((B1["cau"], 3, Gc), np.int32)
     cout = np.full((B1["cau"], 2), (used1, rows), np.int32)
-    cst = np.zeros((B1["cau"], 2, Gc), dtype)
+    hcst = np.zeros((4, H), dtype)
+    hslot = np.zeros((H,), np.int32)
     sgat = np.zeros((B1["slin"], 2, Gl), np.int32)
     sout = np.full((B1["slin"],), used1, np.int32)
     sst = np.zeros((B1["slin"], 2, Gl), dtype)
@@ -781,7 +796,9 @@ def build(
             needs = _NEEDS.get(nd.op, (True, True, True))
             now = [s1(i) if need and i != nd.out else 0 for i, need in zip(ops, needs)]
             cgat[bi, :, j] = (x, now[1], now[2])
-            cst[bi, :, j] = nd.coef
+            row = firsts["cau"][bi][1] + j
+            hcst[:, row] = (*nd.coef, _SUMS[nd.op] != 1, _SUMS[nd.op] != 0)
+            hslot[row] = firsts["cau"][bi][0] + j
     for bi, nodes in enumerate(blocks1["slin"]):
         sout[bi] = firsts["slin"][bi][0]
         for j, nd in enumerate(nodes):
@@ -814,7 +831,6 @@ def build(
         fac_ok=as_i(fac_ok),
         cgat=as_i(cgat),
         cout=as_i(cout),
-        cst=np.asarray(cst),
         sgat=as_i(sgat),
         sout=as_i(sout),
         sst=np.asarray(sst),
@@ -822,7 +838,9 @@ def build(
         dout=as_i(dout),
         hist=as_i(hist),
         seq1=as_i(seq1),
-        blocks=as_i([len(levels0), len(seq)]),
+        blocks=as_i([len(levels0), len(seq), rows]),
+        hcst=np.asarray(hcst),
+        hslot=as_i(hslot),
         families=fams,
         caps0=tuple(B0[f] for f in fams),
     )
@@ -1001,13 +1019,14 @@ def _bound(x):
 
 
 def bounds(tape) -> tuple | None:
-    """The loop bounds of a concrete tape, `(seg0, blocks)` as Python ints (None
+    """The loop bounds of a concrete tape, `(seg0, blocks, rows)` as Python ints (None
     where the tape is traced)."""
     if isinstance(tape.blocks, jax.core.Tracer) or isinstance(
         tape.seg0, jax.core.Tracer
     ):
         return None
-    return tuple(int(x) for x in np.asarray(tape.seg0)), int(np.asarray(tape.blocks)[1])
+    blocks = np.asarray(tape.blocks)
+    return tuple(int(x) for x in np.asarray(tape.seg0)), int(blocks[1]), int(blocks[2])
 
 
 def _order0(tape, Y, D, trig, seg=None):
@@ -1060,29 +1079,85 @@ def _order0(tape, Y, D, trig, seg=None):
 # --- orders >= 1 ----------------------------------------------------------------------
 
 
-def _segments(K, runs=2):
-    """The orders $1..K-1$ in `runs` runs `(first, end, window)`: each run one loop
-    whose Cauchy sums take `window` stored terms (the terms past $k - 1$ read
-    zeros): more runs sum fewer zeros and compile more loop bodies."""
-    runs = max(1, min(runs, (K - 1) // 3))
-    ends = sorted({1 + (K - 1) * (i + 1) // runs for i in range(runs)})
-    starts = [1] + ends[:-1]
-    return [(a, b, b - 1) for a, b in zip(starts, ends) if b > a]
+def _tree_sum(xs):
+    """`sum(xs)` by pairwise additions: a chain of additions is as long as its
+    terms, a tree log2 of it, and the CPU overlaps the independent ones."""
+    xs = list(xs)
+    while len(xs) > 1:
+        xs = [xs[i] + xs[i + 1] for i in range(0, len(xs) - 1, 2)] + xs[len(xs) & ~1 :]
+    return xs[0]
 
 
-def _order_k(tape, Y, Hp, Hq, D, k, window, blocks=None):
-    """Every series node's coefficient $k$ (a traced int; series space), block by
-    block in the level order: the Cauchy sums from the stored orders below $k$ and
-    the values of order $k$ that earlier levels computed (`Y`). Each block's kind
-    is a switch whose branch returns the block's values (small operands, so that
-    `Y` is updated in place outside it)."""
+# History rows up to which the inner terms run over every row at once; beyond, in
+# chunks of `_CHUNK` rows up to the rows in use (a small system in a large size
+# class, e.g. a pendulum in the period tier's, would sum mostly padding).
+_ALL_ROWS = 64
+_CHUNK = 8
+
+
+def _inner_sums(K, H, chunks):
+    r"""Per order $k = 1..K-1$, a function of the histories (`Hp`, `Hq`: `(K, H,
+    W)`, order first) and the rows' weights `(u0, u1)` giving every row's Cauchy
+    terms strictly inside the sum, $\sum_{j=1}^{k-1} (u_0 + u_1 j / k)\, P_j
+    Q_{k-j}$: one branch per order (a switch), so that each sums exactly its
+    terms; over all rows at once where `H > _ALL_ROWS`, else over `chunks` chunks
+    of `_CHUNK` rows."""
+
+    def terms(k, p, q, u0, u1):
+        pq = [p[j] * q[k - j] for j in range(1, k)]
+        plain = _tree_sum(pq)
+        weighted = _tree_sum([float(j) * x for j, x in enumerate(pq, 1)])
+        return u0 * plain + u1 * (weighted * (1.0 / k))
+
+    def branch(k):
+        def fn(Hp, Hq, u0, u1):
+            if k == 1:
+                return jnp.zeros_like(u0)
+            if H > _ALL_ROWS:
+                return terms(k, Hp, Hq, u0, u1)
+
+            def chunk(c, out):
+                r = (c * _CHUNK).astype(jnp.int32)
+                zero = jnp.zeros((), jnp.int32)
+                part = lambda x: lax.dynamic_slice(
+                    x, (zero, r, zero), (k, _CHUNK, x.shape[2])
+                )
+                rows = lambda x: lax.dynamic_slice_in_dim(x, r, _CHUNK)
+                value = terms(k, part(Hp), part(Hq), rows(u0), rows(u1))
+                return lax.dynamic_update_slice_in_dim(out, value, r, 0)
+
+            return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
+
+        return fn
+
+    return [branch(k) for k in range(1, K)]
+
+
+def _row_form(tape, D, P0, Q0):
+    r"""Per history row (a Cauchy node), the coefficients $(\alpha, \beta, \gamma)$
+    of its order-$k$ operands $(X_k, P_k, Q_k)$ and the weights `(u0, u1)` of the
+    terms inside its plain and weighted sums: with them the node's coefficient is
+    $\alpha X_k + \beta P_k + \gamma Q_k + \sum_{j=1}^{k-1} (u_0 + u_1 j/k) P_j
+    Q_{k-j}$ (the terms $j = 0$ and $j = k$ of its sums in $\beta, \gamma$)."""
+    de = D[tape.hslot]
+    d, e = de[:, 0], de[:, 1]
+    c0, c1, plain, weighted = (tape.hcst[i][:, None] for i in range(4))
+    u0 = d * c1 * plain
+    u1 = e * weighted
+    return jnp.stack([d * c0, (u0 + u1) * Q0, u0 * P0]), u0, u1
+
+
+def _order_k(tape, Y, F, inner, D, blocks=None):
+    r"""Every series node's coefficient $k$ (series space), block by block in the
+    level order, from the values of order $k$ that earlier levels computed (`Y`):
+    a Cauchy node's as $\alpha X_k + \beta P_k + \gamma Q_k$ plus its inner terms
+    (`F`, `inner`: `_row_form`, `_inner_sums` per history row), a linear node's
+    from its operands. Each block's form is a switch whose branch returns the
+    block's values (small operands, so that `Y` is updated in place outside it)."""
     Gc, Gl = tape.cgat.shape[2], tape.sgat.shape[2]
     G = max(Gc, Gl)
     W = Y.shape[1]
-    K = Hp.shape[1]
     i32 = lambda x: jnp.asarray(x, jnp.int32)
-    inv_k = 1.0 / k.astype(Y.dtype)
-    weights = [float(j) for j in range(window + 1)]
 
     def rows(y):
         return (
@@ -1091,34 +1166,12 @@ def _order_k(tape, Y, Hp, Hq, D, k, window, blocks=None):
             else jnp.concatenate([y, jnp.zeros((G - y.shape[0], W), y.dtype)])
         )
 
-    def cau(bi, Y, sums):
+    def cau(bi, Y):
         out, row = tape.cout[bi, 0], tape.cout[bi, 1]
         X, Pk, Qk = (Y[tape.cgat[bi, i]] for i in range(3))
-        # P_j forward (j = 0..window); Q reversed (Hq[K - m] = q_m), so that the
-        # window from K - k holds q_{k-j} at j; zero past the orders stored.
-        P = lax.dynamic_slice(Hp, (row, i32(0), i32(0)), (Gc, window + 1, W))
-        Q = lax.dynamic_slice(Hq, (row, i32(K) - k, i32(0)), (Gc, window + 1, W))
-        Q0 = lax.dynamic_slice(Hq, (row, i32(K), i32(0)), (Gc, 1, W))[:, 0]
-        end = Pk * Q0  # (the term j = k)
-        s0 = s1 = None
-        if sums != 1:  # sum_j P_j Q_{k-j}
-            s0 = P[:, 0] * Qk + end
-            for j in range(1, window + 1):
-                s0 = s0 + P[:, j] * Q[:, j]
-        if sums != 0:  # (1/k) sum_j j P_j Q_{k-j}
-            s1 = 0.0
-            for j in range(1, window + 1):
-                s1 = s1 + weights[j] * (P[:, j] * Q[:, j])
-            s1 = end + s1 * inv_k
-        d = lax.dynamic_slice(D, (out, i32(0), i32(0)), (Gc, 2, W))
-        c = tape.cst[bi]
-        lin = c[0][:, None] * X
-        if s0 is not None:
-            lin = lin + c[1][:, None] * s0
-        y = d[:, 0] * lin
-        if s1 is not None:
-            y = y + d[:, 1] * s1
-        return rows(y), out
+        f = lax.dynamic_slice(F, (i32(0), row, i32(0)), (3, Gc, W))
+        d = lax.dynamic_slice(inner, (row, i32(0)), (Gc, W))
+        return rows(f[0] * X + f[1] * Pk + f[2] * Qk + d), out
 
     def slin(bi, Y):
         X0, X1 = Y[tape.sgat[bi, 0]], Y[tape.sgat[bi, 1]]
@@ -1131,10 +1184,13 @@ def _order_k(tape, Y, Hp, Hq, D, k, window, blocks=None):
         d = lax.dynamic_slice(D, (out, i32(0), i32(0)), (Gl, 2, W))
         return rows(d[:, 0] * X0 + d[:, 1] * X1), out
 
-    branches = [functools.partial(cau, sums=i) for i in range(3)] + [slin, dlin]
+    # (The Cauchy kinds, plain, weighted or both sums, differ in `F` only.)
+    branch = jnp.asarray([0, 0, 0, 1, 2], jnp.int32)
 
     def step(i, Y):
-        y, out = lax.switch(tape.seq1[i, 0], branches, tape.seq1[i, 1], Y)
+        y, out = lax.switch(
+            branch[tape.seq1[i, 0]], [cau, slin, dlin], tape.seq1[i, 1], Y
+        )
         return lax.dynamic_update_slice(Y, y, (out, i32(0)))
 
     blocks = _bound(tape.blocks[1]) if blocks is None else blocks
@@ -1142,7 +1198,7 @@ def _order_k(tape, Y, Hp, Hq, D, k, window, blocks=None):
 
 
 def compact_coefficients(
-    tape: CompactTape, K: int, t, ys, params, trig=False, runs=2, bounds=None
+    tape: CompactTape, K: int, t, ys, params, trig=False, bounds=None
 ):
     r"""The Taylor coefficients $y_0..y_K$ of $y' = f(t, y)$ about $(t, y)$ from the
     tape of $f$'s program: `ys` the state's entries (a list of `(W,)` arrays, the
@@ -1150,60 +1206,50 @@ def compact_coefficients(
     arrays). Returns one list of `K + 1` arrays `(W,)` per entry.
 
     `trig`: float64 sines and cosines at order 0 by `lagrax._jaxpr.trig.sincos`
-    (vectorized) instead of the C library's. `runs`: the loops over orders
-    (`_segments`). `bounds`: the tape's loop bounds as Python ints (`bounds`), for
-    a tape passed traced (each loop then a `scan`)."""
-    seg, blocks = (None, None) if bounds is None else bounds
+    (vectorized) instead of the C library's. `bounds`: the tape's loop bounds as
+    Python ints (`bounds`), for a tape passed traced (each loop then a `scan`)."""
+    seg, blocks, rows = (None, None, None) if bounds is None else bounds
     tape = jax.tree.map(jnp.asarray, tape)
     W = t.shape[0]
     dtype = t.dtype
-    S = tape.values.shape[0]
     m = tape.inputs.shape[0]
     i32 = lambda x: jnp.asarray(x, jnp.int32)
     first = tape.inputs[0]  # (the inputs, then the parameters: consecutive slots)
     # --- order 0
-    Y = jnp.broadcast_to(tape.values[:, None].astype(dtype), (S, W))
-    state = jnp.stack([t, *ys])
-    P = tape.params.shape[0]
-    lanes = list(params) + [jnp.zeros((W,), dtype)] * (P - len(params))
-    rows = jnp.concatenate([state, jnp.stack(lanes)]) if P else state
-    Y = lax.dynamic_update_slice(Y, rows, (first, i32(0)))
-    D = jnp.zeros((S, 2, W), dtype)
+    Y, D, state = _inputs0(tape, t, ys, params)
     Y, D = _order0(tape, Y, D, trig, seg)
     Y, D = Y[tape.perm], D[tape.perm]
     # --- orders 1..K-1 of the nodes, 2..K of the state
     H = tape.hist.shape[1]
-    # Histories: P forward (Hp[j] = p_j), Q reversed (Hq[K - j] = q_j), zero where
-    # not yet computed: a Cauchy sum over a fixed window then reads zeros past k.
-    Hp = jnp.zeros((H, K, W), dtype).at[:, 0].set(Y[tape.hist[0]])
-    Hq = jnp.zeros((H, 2 * K, W), dtype).at[:, K].set(Y[tape.hist[1]])
+    P0, Q0 = Y[tape.hist[0]], Y[tape.hist[1]]
+    F, u0, u1 = _row_form(tape, D, P0, Q0)
+    # Histories, order first, zero where not yet computed.
+    Hp = jnp.zeros((K, H, W), dtype).at[0].set(P0)
+    Hq = jnp.zeros((K, H, W), dtype).at[0].set(Q0)
     Z = jnp.zeros((m - 1, K + 1, W), dtype)
     Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(Y[tape.outs])
-    # (Every slot a block writes is written at every order before it is read;
-    # the others, constants and parameters, are zero above order 0.)
-    Y = jnp.zeros((S, W), dtype)
+    rows = _bound(tape.blocks[2]) if rows is None else rows
+    sums = _inner_sums(K, H, (rows + _CHUNK - 1) // _CHUNK)
 
-    def order(k, carry, window):
+    def order(k, carry):
         Y, Hp, Hq, Z = carry
         k = k.astype(jnp.int32)
         t_k = jnp.where(k == 1, 1.0, 0.0).astype(dtype) * jnp.ones((1, W), dtype)
         y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
         Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, y_k]), (first, i32(0)))
-        Y = _order_k(tape, Y, Hp, Hq, D, k, window, blocks)
-        Hp = lax.dynamic_update_slice(Hp, Y[tape.hist[0]][:, None], (i32(0), k, i32(0)))
-        Hq = lax.dynamic_update_slice(
-            Hq, Y[tape.hist[1]][:, None], (i32(0), i32(K) - k, i32(0))
-        )
+        inner = lax.switch(k - 1, sums, Hp, Hq, u0, u1)
+        Y = _order_k(tape, Y, F, inner, D, blocks)
+        Hp = lax.dynamic_update_slice(Hp, Y[tape.hist[0]][None], (k, i32(0), i32(0)))
+        Hq = lax.dynamic_update_slice(Hq, Y[tape.hist[1]][None], (k, i32(0), i32(0)))
         f = Y[tape.outs] / (k + 1).astype(dtype)
         Z = lax.dynamic_update_slice(Z, f[:, None], (i32(0), k + 1, i32(0)))
         return Y, Hp, Hq, Z
 
-    carry = (Y, Hp, Hq, Z)
-    for first_k, end_k, window in _segments(K, runs):
-        carry = lax.fori_loop(
-            first_k, end_k, functools.partial(order, window=window), carry
-        )
-    Z = carry[3]
+    # (Every slot a block writes is written at every order before it is read;
+    # the others, constants and parameters, are zero above order 0.)
+    carry = (jnp.zeros_like(Y), Hp, Hq, Z)
+    if K > 1:  # (K = 1: the acceleration alone, no order to recur)
+        Z = lax.fori_loop(1, K, order, carry)[3]
     return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
 
 
@@ -1290,19 +1336,19 @@ def compact_values(tape: CompactTape, t, ys, params, trig=False):
     return Y[tape.perm[tape.outs]]
 
 
-@functools.partial(jax.jit, static_argnames=("K", "trig", "runs", "bounds"))
-def _jitted(tape, t, ys, params, K, trig, runs, bounds):
-    return compact_coefficients(tape, K, t, ys, params, trig, runs, bounds)
+@functools.partial(jax.jit, static_argnames=("K", "trig", "bounds"))
+def _jitted(tape, t, ys, params, K, trig, bounds):
+    return compact_coefficients(tape, K, t, ys, params, trig, bounds)
 
 
-def traced_once(tape: CompactTape, K: int, t, ys, params, trig=False, runs=2):
+def traced_once(tape: CompactTape, K: int, t, ys, params, trig=False):
     """`compact_coefficients` of a concrete tape as one `jax.jit` (the tape and
     its loop bounds its arguments): traced once per size class and bounds, and
     inlined where it is staged into a caller's program."""
-    return _jitted(tape, t, list(ys), list(params), K, trig, runs, bounds(tape))
+    return _jitted(tape, t, list(ys), list(params), K, trig, bounds(tape))
 
 
-def lane_function(tape: CompactTape, K: int, trig=False, runs=2):
+def lane_function(tape: CompactTape, K: int, trig=False):
     """`(t, ys, params) -> coefficients` of a concrete tape (as `traced_once`) for
     which a caller's `jax.vmap` becomes more lanes of the one program (its arrays
     keep the lanes innermost, where `vmap` would add a leading axis to every
@@ -1313,7 +1359,7 @@ def lane_function(tape: CompactTape, K: int, trig=False, runs=2):
     loops = bounds(tape)
 
     def plain(t, ys, params):
-        return _jitted(tape, t, list(ys), list(params), K, trig, runs, loops)
+        return _jitted(tape, t, list(ys), list(params), K, trig, loops)
 
     @custom_batching.custom_vmap
     def lanes(t, ys, params):

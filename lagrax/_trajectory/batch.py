@@ -514,6 +514,9 @@ def simulate_batch(
     `jax.grad`, `jax.vmap` of `lagrax.simulate` with a diffrax adjoint. Speed against
     heyoka.py: `benchmarks/README.md`.
 
+    `lagrax.Taylor(fallback=...)` batches with its fallback where L has a primitive
+    without a Taylor recurrence, as in `lagrax.simulate`.
+
     **Arguments:** as `lagrax.simulate`, with `q0`, `qdot0` of shape `(B, n)`,
     `t0`, `t1`, `rtol`, `atol` scalars or of shape `(B,)`, `solver` by default
     `lagrax.Taylor()` (the solver the loop is built for; `simulate`'s default,
@@ -546,6 +549,20 @@ def simulate_batch(
     check_callable(L, "L", "a function L(q, qdot, t) -> scalar")
     solver = Taylor() if solver is None else solver
     check_instance(solver, "solver", dfx.AbstractSolver, "a diffrax solver")
+    if isinstance(solver, Taylor) and solver.fallback is not None:
+        # As in `simulate`: where L's accelerations have a primitive without a
+        # Taylor recurrence, tracing the Taylor program raises `NotImplementedError`,
+        # and the caller allowed the fallback to step instead.
+        kwargs = dict(
+            force=force, saveat=saveat, rtol=rtol, atol=atol, max_steps=max_steps,
+            throw=throw, lanes=lanes, **kwargs,
+        )  # fmt: skip
+        try:
+            taylor = dataclasses.replace(solver, fallback=None)
+            return simulate_batch(L, q0, qdot0, t0, t1, solver=taylor, **kwargs)
+        except NotImplementedError:
+            fallback = solver.fallback
+            return simulate_batch(L, q0, qdot0, t0, t1, solver=fallback, **kwargs)
     q0 = as_real_array(q0, "q0")
     qdot0 = as_real_array(qdot0, "qdot0")
     if q0.ndim != 2 or qdot0.shape != q0.shape:
