@@ -1,6 +1,9 @@
 """`lagrax.Taylor(order=None)` (its default): `simulate_batch` takes the order its
 docstring gives for the tolerance; an order given is kept."""
 
+import dataclasses
+
+import diffrax as dfx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -42,6 +45,9 @@ def test_an_order_given_is_kept():
     assert T.order == 20 and T == lagrax.Taylor(order=None)
     assert T == lagrax.Taylor(order=T.order, max_step=T.max_step)
     assert batch._order(lagrax.Taylor(order=T.order), loose, loose) == 12
+    # ... and so does `simulate_batch`'s copy without its fallback.
+    plain = dataclasses.replace(lagrax.Taylor(fallback=dfx.Dopri8()), fallback=None)
+    assert batch._order(plain, loose, loose) == 12
 
 
 def test_simulate_batch_steps_at_the_chosen_order():
