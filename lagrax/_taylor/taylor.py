@@ -135,9 +135,10 @@ class Taylor(AbstractTaylorSolver):
         $K = 2\lceil\lceil 1 - \ln(\text{tol})/2\rceil / 2\rceil$ with tol the
         tightest release's $\max(\text{rtol}, \text{atol})$: 12 down to 1e-9, 14
         to 1e-11, 16 to 1e-13, 18 at 1e-14, 20 from 1e-15 on and where the
-        tolerances are traced. Elsewhere (the period kernel, the diffrax solver)
-        `None` means 20, the order heyoka.py picks for float64 at its default
-        tolerance. Figures: `benchmarks/README.md`.
+        tolerances are traced (each order its own compiled program: give `order`
+        to keep one program across tolerances). Elsewhere (the period kernel, the
+        diffrax solver) `None` means 20, the order heyoka.py picks for float64 at
+        its default tolerance. Figures: `benchmarks/README.md`.
     - `max_step`: the period kernel's longest step in the lane's units of time,
         $\sqrt{|q_0| / |\ddot q_0|}$ (default 2, a third of a small oscillation's
         period, so that no event is stepped over); unused elsewhere.
