@@ -37,9 +37,9 @@ FLOOR = 1e-14
 # for every system here).
 SOLVERS = [lagrax.Taylor(), dfx.Dopri8()]
 solvers = pytest.mark.parametrize("solver", SOLVERS, ids=["taylor", "dopri8"])
-# Dopri8's estimate is checked every time on the pendulum's range and near its
-# separatrix ("matched"); elsewhere its variant runs with -m slow (a Dopri8 program
-# each: the compilation is the cost).
+# Dopri8's estimate is checked every time on the pendulum's range
+# (test_every_explicit_tableau_runs_the_kernel[Dopri8]); its variants here run with
+# -m slow (a Dopri8 program each: the compilation is the cost).
 taylor_every_time = pytest.mark.parametrize(
     "solver",
     [
@@ -143,10 +143,9 @@ def test_pendulum_near_the_separatrix(solver):
     assert err.max() <= 1e-12
 
 
-# "half"'s two programs with -m slow; the estimate reporting the lanes it cannot
-# certify near the separatrix every time in test_pendulum_near_the_separatrix[dopri8].
-@pytest.mark.slow
-@solvers
+# The estimate reporting the lanes it cannot certify near the separatrix: with the
+# default solver every time, with Dopri8 under -m slow.
+@taylor_every_time
 def test_half_near_the_separatrix_is_caught_by_the_estimate(solver):
     a = jnp.linspace(3.0, jnp.pi - 1e-3, 64)
     res = lagrax.sweep_periods(PENDULUM, a, solver=solver, method="half")
@@ -205,7 +204,7 @@ def _well_period(x0):
         )
 
 
-# Dopri8's estimate near a separatrix: every time in the pendulum's tests.
+# Dopri8's estimate near a separatrix: test_pendulum_near_the_separatrix[dopri8].
 @taylor_every_time
 def test_asymmetric_well_to_099_of_its_hump(solver):
     q0 = _hump_releases(64)
