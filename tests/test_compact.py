@@ -183,8 +183,16 @@ def _run(tape, t, ys, sigma):
     return compact.compact_coefficients(tape, K, t, list(ys), [sigma])
 
 
+# chain3's unrolled reference (a program of its own) with -m slow; n = 3 every time
+# against hand-written equations (particle_3d).
 @pytest.mark.parametrize(
-    "name", ["pendulum", "double_pendulum", "velocity_dependent", "chain3"]
+    "name",
+    [
+        "pendulum",
+        "double_pendulum",
+        "velocity_dependent",
+        pytest.param("chain3", marks=pytest.mark.slow),
+    ],
 )
 def test_equals_the_unrolled_program(shared, name):
     systems, tapes, _ = shared

@@ -37,9 +37,9 @@ FLOOR = 1e-14
 # for every system here).
 SOLVERS = [lagrax.Taylor(), dfx.Dopri8()]
 solvers = pytest.mark.parametrize("solver", SOLVERS, ids=["taylor", "dopri8"])
-# Dopri8's estimate is checked every time on the pendulum's range and near its
-# separatrix ("matched"); elsewhere its variant runs with -m slow (a Dopri8 program
-# each: the compilation is the cost).
+# Dopri8's estimate is checked every time on the pendulum's range
+# (test_every_explicit_tableau_runs_the_kernel[Dopri8]); its variants here run with
+# -m slow (a Dopri8 program each: the compilation is the cost).
 taylor_every_time = pytest.mark.parametrize(
     "solver",
     [
@@ -99,7 +99,10 @@ def test_the_default_falls_back_where_the_program_is_too_large_to_unroll():
     assert resolve_solver(low, cycloid.lagrangian(), f64) == lagrax.Taylor(order=4)
 
 
-@solvers
+# Dopri8's bound on the pendulum's range every time in
+# test_every_explicit_tableau_runs_the_kernel[Dopri8]; its 256-lane sweeps here and
+# near the separatrix (one program, and another without the estimate) with -m slow.
+@taylor_every_time
 def test_pendulum_default_method_meets_1e12_with_bounded_estimates(solver):
     res = lagrax.sweep_periods(PENDULUM, A, solver=solver)
     assert np.all(np.asarray(res.status) == SUCCESS)
@@ -115,7 +118,7 @@ def _pendulum_period(a):
         return float(2 * mpmath.pi / mpmath.agm(1, k))
 
 
-@solvers
+@taylor_every_time
 def test_pendulum_near_the_separatrix(solver):
     # Within 1e-2 of π "half" loses up to 1.7e-9; "matched" keeps 1e-12 up to
     # π - 1e-3. With Taylor (the default) every lane is a success, its estimate (the
@@ -140,6 +143,8 @@ def test_pendulum_near_the_separatrix(solver):
     assert err.max() <= 1e-12
 
 
+# The estimate reporting the lanes it cannot certify near the separatrix: with the
+# default solver every time, with Dopri8 under -m slow.
 @taylor_every_time
 def test_half_near_the_separatrix_is_caught_by_the_estimate(solver):
     a = jnp.linspace(3.0, jnp.pi - 1e-3, 64)
@@ -199,7 +204,7 @@ def _well_period(x0):
         )
 
 
-# Dopri8's estimate near a separatrix: every time in the pendulum's tests.
+# Dopri8's estimate near a separatrix: test_pendulum_near_the_separatrix[dopri8].
 @taylor_every_time
 def test_asymmetric_well_to_099_of_its_hump(solver):
     q0 = _hump_releases(64)
@@ -403,6 +408,7 @@ def test_every_explicit_tableau_runs_the_kernel(solver, tol, bound):
         _check_bound(res, pendulum.period(a))
 
 
+@pytest.mark.slow  # two Dopri8 programs of a reparametrized L of its own
 def test_an_undefined_rounding_band_is_not_a_nonfinite_release():
     # Next to the cusp the reparametrized cycloid's far turning point is the cusp
     # itself, where rounding leaves the band of L(q, 0) undefined (NaN): the requested
@@ -476,6 +482,9 @@ def test_the_bound_vouches_without_a_second_solve():
     _check_bound(res, pendulum.period(A))
 
 
+# (No second solve where the bound vouches: every time on the pendulum in
+# test_the_bound_vouches_without_a_second_solve.)
+@pytest.mark.slow  # two programs of an L of its own
 def test_the_far_turning_points_band_costs_nothing_in_a_harmonic_well():
     # L with a constant far above the swing's energy: the far turning point is known
     # only to ~eps/A² of the amplitude A, but the harmonic well is isochronous

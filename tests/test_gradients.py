@@ -87,7 +87,22 @@ def test_a_module_lagrangian_with_parameters():
         assert np.all(np.asarray(res.status) == 0)
         np.testing.assert_allclose(res.periods, exact / np.sqrt(g), rtol=1e-12)
 
-    # (dT/dg of a sweep: in test_derivatives_along_q0_and_every_parameter.)
+    # (dT/dg of a sweep: in test_derivatives_along_q0_and_every_parameter; of one
+    # period, a program of its own, in the test below.)
+
+
+@pytest.mark.slow  # reverse mode through one lane's kernel: its compilation is the cost
+def test_a_module_lagrangians_period_is_differentiated_wrt_its_field():
+    import equinox as eqx
+
+    from lagrax.systems import pendulum
+
+    class Pendulum(eqx.Module):
+        g: jax.Array
+
+        def __call__(self, q, qdot, t):
+            return 0.5 * qdot[0] ** 2 + self.g * jnp.cos(q[0])
+
     grad = jax.grad(lambda m: lagrax.period(m, 1.0))(Pendulum(jnp.asarray(1.0)))
     np.testing.assert_allclose(grad.g, -0.5 * float(pendulum.period(1.0)), rtol=1e-9)
 

@@ -80,7 +80,14 @@ def test_cycloid_is_isochronous_in_both_coordinates():
     us = jnp.array([-1.0, -0.3, 1e-6, 0.5, 0.999, 1.0])
     res = lagrax.quadrature_period(cycloid.lagrangian_u(R=R, g=g), us)
     np.testing.assert_allclose(res.periods, exact, rtol=1e-13)
-    # And the reparametrized theta form agrees where it is regular.
+
+
+@pytest.mark.slow  # a third quadrature program
+def test_cycloid_reparametrized_theta_form_agrees():
+    R, g = 1.5, 9.81
+    exact = float(cycloid.period(R=R, g=g))
+    # The reparametrized theta form agrees where it is regular.
+    L_theta = cycloid.lagrangian(R=R, g=g)
     L_u = lagrax.reparametrize(L_theta, lambda u, t: 2 * jnp.arccos(u))
     res = lagrax.quadrature_period(L_u, jnp.array([-0.9, 0.2, 0.7]))
     np.testing.assert_allclose(res.periods, exact, rtol=1e-12)

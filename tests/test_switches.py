@@ -109,7 +109,11 @@ def _kinked_period(q0, c):
     return float(2 * mpmath.quad(f, [-mpmath.sqrt(E), 0, half, mpmath.mpf(q0)]))
 
 
-@pytest.mark.parametrize("method", ["matched", "half"])
+# The switch check is the Taylor step's, whichever the method: the default method
+# every time, "half" (two programs of its own) with -m slow.
+@pytest.mark.parametrize(
+    "method", ["matched", pytest.param("half", marks=pytest.mark.slow)]
+)
 def test_period_kernel_never_a_wrong_period_across_a_switch(method):
     c = 1e-8  # a small kink: the energy check cannot see it
     V = lambda q: q**2 + c * jnp.where(q > 0.5, (q - 0.5) ** 2, 0.0)

@@ -194,6 +194,9 @@ def _check_series_against_jvps(field, q0, v0, order=4):
     return system.prog
 
 
+# The solve recurrence of n = 3 every time in test_merged_program_of_a_particle_chain
+# (a chain of three links: its series against JVPs, its one "solve" node).
+@pytest.mark.slow
 def test_mass_matrix_solve_recurrence_three_coordinates():
     # n = 3 takes the marked solve (one factorization of M_0 per step).
     def L(q, qdot, t):
