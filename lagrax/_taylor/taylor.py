@@ -60,6 +60,9 @@ class _Order(enum.IntEnum):
 
     CHOSEN = DEFAULT_ORDER
 
+    def __repr__(self):  # (`Taylor()` prints as it is built: `Taylor(order=None)`)
+        return "None"
+
 
 def _order_or_default(order):
     return _Order.CHOSEN if order is None else order
