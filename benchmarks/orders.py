@@ -146,8 +146,11 @@ def main():
                 continue
             new = json.loads(out.stdout.strip().splitlines()[-1])
             done = {(r["system"], r["tier"], r["order"], r["tol"]) for r in new}
-            rows = [r for r in rows
-                    if (r["system"], r["tier"], r["order"], r["tol"]) not in done]
+            rows = [
+                r
+                for r in rows
+                if (r["system"], r["tier"], r["order"], r["tol"]) not in done
+            ]
             rows += new  # fmt: skip
             with open(args.out, "w") as fh:
                 json.dump(dict(rows=rows, date=time.strftime("%Y-%m-%d")), fh,

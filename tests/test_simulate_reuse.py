@@ -243,7 +243,8 @@ def test_under_jit_and_vmap_it_is_traced_in_place(monkeypatch):
 
 
 # (Reverse mode through a simulate every time in tests/test_taylor_diffrax.py; an L
-# closing over a tracer, traced in place, in test_under_jit_and_vmap_it_is_traced_in_place.)
+# closing over a tracer, traced in place, in
+# test_under_jit_and_vmap_it_is_traced_in_place.)
 @pytest.mark.slow  # reverse mode through the solve: its compilation is the cost
 def test_a_lagrangian_closing_over_a_tracer_is_differentiated(cache):
     # (Concrete state and times, and L closes over the tracer of `jax.grad`: run as
