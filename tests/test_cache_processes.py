@@ -29,9 +29,9 @@ DEFAULT = ["simulate_gauss_legendre4", "simulate_three_coordinates", "simulate_t
 # `dt0`.
 REFUSED = {"simulate_progress_meter", "simulate_saveat_ts", "simulate_dt0"}
 # Calls that compile nothing the cache keeps (they run op by op or under the caller's
-# trace): still run twice, for the crash and the numbers.
-UNCACHED = {"simulate_batch_tsit5", "period", "period_quarter_estimate"}
-UNCACHED |= {"quadrature_period"}
+# trace): still run twice, for the crash and the numbers. (`period` runs the sweep's
+# programs, which the cache keeps.)
+UNCACHED = {"simulate_batch_tsit5", "quadrature_period"}
 
 
 def _run(cache, out, cases):
