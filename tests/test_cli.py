@@ -3,6 +3,7 @@ import os
 import stat
 import sys
 import textwrap
+import warnings
 
 import matplotlib.image
 import numpy as np
@@ -421,3 +422,19 @@ def test_sweep_with_the_taylor_solver(capsys, tmp_path):
     np.testing.assert_allclose(
         data["period"], exact_pendulum(data["amplitude"]), rtol=1e-12
     )
+
+
+def test_the_librarys_notices_print_as_one_line(monkeypatch, capsys):
+    from lagrax._cli import main as cli_main
+
+    def lines():
+        warnings.warn("lagrax: a notice", stacklevel=2)
+        warnings.warn("another warning", UserWarning, stacklevel=2)
+        return ["a line"]
+
+    monkeypatch.setattr(cli_main, "systems_lines", lines)
+    with pytest.warns(UserWarning, match="another warning"):
+        assert cli_main.main(["systems"]) == 0
+    err = capsys.readouterr().err
+    assert "lagrax: a notice\n" in err.splitlines(keepends=True)
+    assert "UserWarning: lagrax" not in err

@@ -27,7 +27,9 @@ The modules: `parser` (arguments), `processes` (JAX, devices, other processes),
 `output` (table, files, progress) and `chart`.
 """
 
+import functools
 import sys
+import warnings
 
 from .parser import parser, UsageError, validate
 from .processes import Unreachable
@@ -37,6 +39,21 @@ from .targets import systems_lines
 
 def main(argv=None) -> int:
     """Entry point of the `lagrax` console script."""
+    with warnings.catch_warnings():
+        warnings.showwarning = functools.partial(_show_warning, warnings.showwarning)
+        return _main(argv)
+
+
+def _show_warning(default, message, category, filename, lineno, file=None, line=None):
+    """The library's own notices ("lagrax: ...") as one line on stderr, without the
+    file and line of the code that warned (a command's user did not write it)."""
+    if str(message).startswith("lagrax:"):
+        print(str(message), file=sys.stderr if file is None else file)
+    else:
+        default(message, category, filename, lineno, file, line)
+
+
+def _main(argv) -> int:
     try:
         args = parser().parse_args(argv)
         args.from_command_line = argv is None
