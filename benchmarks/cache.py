@@ -5,7 +5,8 @@ of the call itself, import excluded), and whether the cache kept its programs.
 
     python benchmarks/cache.py [--core 1] [CASE ...]
 
-Writes `benchmarks/results/cache.json`.
+Writes `benchmarks/results/cache.json` (every case), or `cache_subset.json` where
+CASE names some: a partial run never overwrites the table of a full one.
 """
 
 import argparse
@@ -52,7 +53,8 @@ def main():
         s = later.get("seconds", float("nan"))
         note = "" if "exit" not in later else f" exit {later['exit']}"
         print(f"{case:32s} {'yes' if kept else 'no':>5s} {f:8.2f} {s:8.2f}{note}")
-    out = os.path.join(HERE, "results", "cache.json")
+    full = set(args.cases) >= set(cache_worker.CASES)
+    out = os.path.join(HERE, "results", "cache.json" if full else "cache_subset.json")
     with open(out, "w") as fh:
         json.dump(rows, fh, indent=1)
 
