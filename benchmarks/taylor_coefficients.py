@@ -42,8 +42,7 @@ import lagrax  # noqa: E402
 from lagrax._jaxpr.canonical import canonical_lagrangian  # noqa: E402
 from lagrax._jaxpr.fusion import elemental_options  # noqa: E402
 from lagrax._taylor import compact  # noqa: E402
-from lagrax._taylor.system import System  # noqa: E402
-from lagrax._trajectory.term import _LagrangeVectorField  # noqa: E402
+from lagrax._trajectory.batch import _system as batch_system  # noqa: E402
 
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -75,15 +74,7 @@ def lagrangian(name):
 def system(name):
     L, n = lagrangian(name)
     L_c, consts = canonical_lagrangian(L, jnp.float64, n)
-    field = _LagrangeVectorField(lambda q, qd, t: L_c(q, qd, t, *consts), None)
-
-    def f(tau, ys, params):
-        q, w = ys
-        (sigma,) = params
-        return [w, field(sigma * tau, (q, sigma * w), None)[1]]
-
-    zero = jnp.zeros((), jnp.float64)
-    return System(f, zero, [jnp.zeros(n), jnp.zeros(n)], [zero + 1]), n
+    return batch_system(L_c, consts, None, jnp.zeros(n), jnp.zeros(n)), n
 
 
 def loop(coefficients, steps):

@@ -13,8 +13,7 @@ from jax.experimental import jet
 import lagrax
 from lagrax._jaxpr.canonical import canonical_lagrangian
 from lagrax._taylor import compact
-from lagrax._taylor.system import System
-from lagrax._trajectory.term import _LagrangeVectorField
+from lagrax._trajectory.batch import _system as batch_system
 
 
 G = 9.81
@@ -76,17 +75,9 @@ def particle_accel(q, qd, t):
 
 def _system(L, n):
     """The program of $q' = w$, $w' = \\ddot q(\\sigma \\tau, q, \\sigma w)$, as
-    `simulate_batch` builds it."""
+    `simulate_batch` builds it (its own builder)."""
     L_c, consts = canonical_lagrangian(L, jnp.float64, n)
-    field = _LagrangeVectorField(lambda q, qd, t: L_c(q, qd, t, *consts), None)
-
-    def f(tau, ys, params):
-        q, w = ys
-        (sigma,) = params
-        return [w, field(sigma * tau, (q, sigma * w), None)[1]]
-
-    zero = jnp.zeros((), jnp.float64)
-    return System(f, zero, [jnp.zeros(n), jnp.zeros(n)], [zero + 1])
+    return batch_system(L_c, consts, None, jnp.zeros(n), jnp.zeros(n))
 
 
 def _point(n, seed=0):
