@@ -587,6 +587,79 @@ def work_chain_heyoka(args):
     )  # fmt: skip
 
 
+def _jit_system(name, n):
+    """`(L, q0, qdot0)` of `--only jit`: the double pendulum (releases from rest,
+    θ1, θ2 ∈ [−1, 1]) or a chain of 3 links (`chain3`, releases in ±0.5 rad)."""
+    import numpy as np
+
+    if name == "double_pendulum":
+        from lagrax.systems import double_pendulum
+
+        q0 = _releases(n)
+        return double_pendulum.lagrangian(), q0, np.zeros_like(q0)
+    links = int(name.removeprefix("chain"))
+    return (_chain(links), *_chain_releases(links, n))
+
+
+def work_jit(args):
+    """The plain idiom `jax.jit(jax.vmap(lambda q0: simulate(L, q0, ...,
+    solver=lagrax.Taylor())))`, no compiler options, t = 10, rtol = atol = `--tol`:
+    the first call split into tracing, lowering to MLIR, XLA's compile and the
+    run (wall and CPU seconds), then the best of three calls; the end states'
+    largest error against Dopri8 at rtol = atol = 1e-14 (compiled after, with
+    XLA's elemental emitters)."""
+    jax, lagrax, row, _ = _jax_import()
+    import diffrax as dfx
+    import jax.numpy as jnp
+    import numpy as np
+
+    L, q0, v0 = _jit_system(args.system, args.n)
+    solver = lagrax.Taylor(order=args.order or None)
+
+    def solve(q0, v0, solver, tol, max_steps):
+        sol = lagrax.simulate(
+            L, q0, v0, 0.0, 10.0, solver=solver, rtol=tol, atol=tol,
+            max_steps=max_steps, throw=False,
+        )  # fmt: skip
+        ok = sol.result == dfx.RESULTS.successful
+        return sol.ys[0][-1], sol.ys[1][-1], sol.stats["num_steps"], ok
+
+    f = jax.jit(jax.vmap(lambda q, v: solve(q, v, solver, args.tol, 16384)))
+    q0, v0 = jnp.asarray(q0), jnp.asarray(v0)
+    # (The first call's stages one by one, through jit's ahead-of-time methods:
+    # the work `f(q0, v0)` does on its first call.)
+    start = _clock()
+    traced = f.trace(q0, v0)
+    row.update(_since(start, "trace"))
+    step = _clock()
+    lowered = traced.lower()
+    row.update(_since(step, "lower"))
+    step = _clock()
+    compiled = lowered.compile()
+    row.update(_since(step, "compile"))
+    step = _clock()
+    out = jax.block_until_ready(compiled(q0, v0))
+    row.update(_since(step, "run"), **_since(start, "first"))
+    best = float("inf")
+    for _ in range(3):
+        t = time.perf_counter()
+        out = jax.block_until_ready(compiled(q0, v0))
+        best = min(best, time.perf_counter() - t)
+    ref = jax.jit(
+        jax.vmap(lambda q, v: solve(q, v, dfx.Dopri8(), 1e-14, 1 << 18)),
+        compiler_options={"xla_cpu_use_fusion_emitters": False},
+    )(q0, v0)
+    ys = np.concatenate([np.asarray(out[0]), np.asarray(out[1])], 1)
+    ys_ref = np.concatenate([np.asarray(ref[0]), np.asarray(ref[1])], 1)
+    ok = np.asarray(out[3])
+    return dict(
+        row, system=args.system, tol=args.tol, n=args.n, order=solver.order,
+        steady_s=best, steps=float(np.mean(np.asarray(out[2]))),
+        failed=int((~ok).sum()), reference_failed=int((~np.asarray(ref[3])).sum()),
+        max_error=float(np.max(np.abs(ys[ok] - ys_ref[ok]))) if ok.any() else None,
+    )  # fmt: skip
+
+
 WORKERS = dict(
     chain=work_chain,
     chain_heyoka=work_chain_heyoka,
@@ -599,6 +672,7 @@ WORKERS = dict(
     batch=work_batch,
     eager=work_eager,
     heyoka=work_heyoka,
+    jit=work_jit,
 )
 
 
@@ -674,7 +748,8 @@ def main():
     p.add_argument("--system", default="pendulum")
     p.add_argument("--solver", default="tsit5", help="eager: tsit5, dopri8, taylor")
     p.add_argument("--ts", type=int, default=0, help="eager: save at n times")
-    p.add_argument("--only", choices=("all", "eager", "tier", "chains"), default="all")
+    only = ("all", "eager", "tier", "chains", "jit")
+    p.add_argument("--only", choices=only, default="all")
     p.add_argument(
         "--elemental", action="store_true", help="simulate: XLA's elemental emitters"
     )
@@ -682,6 +757,8 @@ def main():
         "--batch-solver", default="taylor", help="batch: taylor, tsit5, dopri8"
     )
     p.add_argument("--links", type=int, default=4, help="chain: its links")
+    p.add_argument("--order", type=int, default=0, help="jit: Taylor's (0: None)")
+    p.add_argument("--against", default="", help="--only jit: another checkout")
     p.add_argument("--tol", type=float, default=1e-12, help="chain: the tolerance")
     p.add_argument("--compact", action="store_true", help="chain_heyoka: compact")
     p.add_argument("--reference", default="", help="chain: the reference states")
@@ -700,6 +777,9 @@ def main():
         return
     if args.only == "tier":
         _write_results(args, tier_rows(args.core), "first_result_tier.json")
+        return
+    if args.only == "jit":
+        _write_results(args, jit_rows(args.core, args.against), "first_result_jit.json")
         return
     if args.only == "chains":
         out = chain_rows(args.core, args.chains)
@@ -864,6 +944,38 @@ def chain_rows(core, links):
                 row = spawn(core, "chain", env=env, **common)
                 rows.append(dict(name="lagrax simulate_batch, specialized", **row))
                 print(json.dumps(rows[-1]), flush=True)
+    return dict(rows=rows)
+
+
+def jit_rows(core, against=""):
+    """The plain `jax.jit(jax.vmap(simulate(..., solver=lagrax.Taylor())))` of the
+    double pendulum and a 3-link chain, 16 releases, at rtol = atol = 1e-10 and
+    1e-13, each a fresh process pinned to `core`; with `against` (another
+    checkout's root), its lagrax run alternately in the same places."""
+    trees = [os.path.dirname(HERE)] + ([os.path.abspath(against)] if against else [])
+    rows = []
+    for system in ("double_pendulum", "chain3"):
+        for tol in (1e-10, 1e-13):
+            for tree in trees:
+                cmd = ["taskset", "-c", str(core), sys.executable, __file__]
+                cmd += ["--worker", "jit", "--system", system, "--n", "16"]
+                env = dict(_env(), PYTHONPATH=tree)
+                out = subprocess.run(
+                    cmd + ["--tol", str(tol)], capture_output=True, text=True, env=env
+                )
+                if out.returncode != 0:
+                    print(out.stderr[-3000:], file=sys.stderr)
+                    continue
+                row = json.loads(out.stdout.strip().splitlines()[-1])
+                rows.append(dict(row, tree=tree))
+                print(
+                    f"{system} tol {tol:g} ({tree}): first {row['first_s']:.2f} s "
+                    f"(CPU {row['first_cpu_s']:.2f}: trace {row['trace_cpu_s']:.2f}, "
+                    f"lower {row['lower_cpu_s']:.2f}, compile "
+                    f"{row['compile_cpu_s']:.2f}), order {row['order']}, steady "
+                    f"{row['steady_s'] * 1e3:.1f} ms, error {row['max_error']:.2g}",
+                    flush=True,
+                )
     return dict(rows=rows)
 
 
