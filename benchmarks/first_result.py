@@ -49,6 +49,8 @@ enable one are removed from the workers' environment), float64:
 `simulate` rows with Tsit5 only. `--only eager`: the eager `simulate` rows alone.
 Writes `benchmarks/results/first_result.json` (or `first_result_quick.json`,
 `first_result_eager.json`, `first_result_tier.json`, `first_result_chains.json`).
+`--only jit [--against CHECKOUT]`: `jit_rows` (the plain `jit(vmap(simulate(...,
+solver=Taylor())))`), another checkout's lagrax alternated; `first_result_jit.json`.
 """
 
 import argparse
