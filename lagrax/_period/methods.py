@@ -99,11 +99,18 @@ class _Solve(eqx.Module):
         L, m = self.L, self.m
         return run_pass(L, m.pass_, lanes, self.consts, self.t_max, self.energy_tol)
 
-    def leg_b(self, res: PassResult, lanes: Lanes, shift) -> tuple[Lanes, LegA]:
+    def leg_b(
+        self, res: PassResult, lanes: Lanes, shift, only=None
+    ) -> tuple[Lanes, LegA]:
         """The second leg of "matched": from rest at the far turning point (moved by
-        `shift` rounding bands), ending at the first leg's meeting point."""
+        `shift` rounding bands), ending at the first leg's meeting point; with
+        `only`, for those lanes alone (the others keep their first leg's status and
+        take no step)."""
         st_a, t_a, q_m, qd_a = res.status, res.t_event, res.q_end, res.qdot_end
         q0 = lanes.q0
+        if only is not None:
+            # (NaN takes no Newton step in the far turning point's loops.)
+            q0, q_m = jnp.where(only, q0, jnp.nan), jnp.where(only, q_m, jnp.nan)
         # Any point of leg A serves as the meeting point: leg B ends at its
         # position. Where the point of maximum speed cannot be located (a well
         # whose curvature vanishes at its bottom, q̈ = -q³: q̈ has a triple zero in
@@ -113,12 +120,17 @@ class _Solve(eqx.Module):
         st_a = jnp.where(meet & (qd_a != 0), SUCCESS, st_a)  # (moving: not the release)
         far = far_turning_point(self.L, self.consts, q0, q_m, self.m.estimate)
         # (L beyond the vectorized sines' range: the solver's failure, not the well's.)
-        st_a = jnp.where((st_a == SUCCESS) & ~far.in_range, SOLVER_FAILED, st_a)
+        out_of_range = (st_a == SUCCESS) & ~far.in_range
+        if only is not None:
+            out_of_range = out_of_range & only
+        st_a = jnp.where(out_of_range, SOLVER_FAILED, st_a)
         # (Only where shifted: a band that rounding leaves undefined, NaN next to a
         # singular point, must not turn the requested solve's start into NaN,
         # reported as a non-finite release point.)
         q1 = far.q1 + jnp.where(shift != 0, shift * far.band, 0.0)
         go = far.found & (st_a == SUCCESS)
+        if only is not None:
+            go = go & only
         lanes_b = Lanes(
             jnp.where(go, q1, jnp.nan),
             q_m,
@@ -171,6 +183,8 @@ def run_method(
     if m.method == "quarter" and screened:
         lanes0 = Lanes(q0, zeros, _kinds(q0, MAX_SPEED), rtols, atols, live)
         return _quarter_screened(solve, lanes0, rtols)
+    if m.method == "half" and m.estimate and jnp.ndim(shift) == 1:
+        return _half_with_reference(solve, q0, rtols, atols, shift)
     if m.method != "matched":
         return _one_pass(solve, q0, zeros, rtols, atols, live)
     lanes0 = Lanes(q0, zeros, _kinds(q0, MAX_SPEED), rtols, atols, live)
@@ -222,15 +236,25 @@ def _matched(solve: _Solve, lanes0: Lanes, shift, rtols) -> MethodResult:
     not unrolled). Two calls of the pass would put two copies of the kernel in the
     program: everything but its identical fusions compiled twice, and the
     forward-mode derivative's tangent kernels twice."""
+    res_a, aux, res_b = _two_legs(solve, lanes0, shift, rtols)
+    out = solve.combine(res_a, res_b, aux, rtols)
+    return MethodResult(out.periods, out.status, out.steps, out.executed, out.q_far)
+
+
+def _two_legs(solve: _Solve, lanes0: Lanes, shift, rtols, only=None):
+    """The two legs of "matched" (`only`: for those lanes; the others end with the
+    first pass): `(res_a, LegA, res_b)`."""
     res_shape = jax.eval_shape(lambda: solve.run(lanes0))
-    aux_shape = jax.eval_shape(lambda r: solve.leg_b(r, lanes0, shift)[1], res_shape)
+    aux_shape = jax.eval_shape(
+        lambda r: solve.leg_b(r, lanes0, shift, only)[1], res_shape
+    )
 
     def body(c):
         k, lanes, res_a, aux, _ = c
         res = solve.run(lanes)
         leg_a = k % 2 == 0
         lanes, aux = jax.lax.cond(
-            leg_a, lambda: solve.leg_b(res, lanes, shift), lambda: (lanes, aux)
+            leg_a, lambda: solve.leg_b(res, lanes, shift, only), lambda: (lanes, aux)
         )
         res_a = jax.tree.map(lambda x, y: jnp.where(leg_a, x, y), res, res_a)
         return k + 1, lanes, res_a, aux, res
@@ -240,8 +264,33 @@ def _matched(solve: _Solve, lanes0: Lanes, shift, rtols) -> MethodResult:
     init = (jnp.zeros((), jnp.int32), lanes0, *_blank((res_shape, aux_shape)))
     init = (*init, _blank(res_shape))
     _, _, res_a, aux, res_b = jax.lax.while_loop(lambda c: c[0] < passes, body, init)
-    out = solve.combine(res_a, res_b, aux, rtols)
-    return MethodResult(out.periods, out.status, out.steps, out.executed, out.q_far)
+    return res_a, aux, res_b
+
+
+def _half_with_reference(solve: _Solve, q0, rtols, atols, shift) -> MethodResult:
+    """ "half" with its estimate's second solve (the lanes where `shift` is not
+    zero) by "matched": through the bottom of the swing "half" loses to the energy
+    errors its steps make, amplified near a hump, by an amount that does not scale
+    with the tolerance (the same in a solve at tighter tolerances, so their
+    difference cannot see it), while "matched", right wherever "half" is, pins the
+    energy at both turning points. Both in the passes of one instance of the kernel:
+    the first runs "half" and the reference's first leg (each lane its own event),
+    the second the reference's second leg."""
+    ref = shift != 0
+    kinds = jnp.where(ref, MAX_SPEED, TURNING).astype(jnp.int32)
+    live = jnp.ones(q0.shape, bool)
+    lanes0 = Lanes(q0, jnp.zeros_like(q0), kinds, rtols, atols, live)
+    res_a, aux, res_b = _two_legs(solve, lanes0, shift, rtols, only=ref)
+    matched = solve.combine(res_a, res_b, aux, rtols)
+    half = _one_pass_result(solve, q0, rtols, res_a)
+    pick = lambda x, y: jnp.where(ref, x, y)
+    return MethodResult(
+        pick(matched.periods, half.periods),
+        pick(matched.status, half.status),
+        pick(matched.steps, half.steps),
+        res_a.executed + res_b.executed,
+        pick(matched.q_far, half.q_far),
+    )
 
 
 def _pack(out: MethodResult, dtype):
