@@ -47,11 +47,13 @@ PROMISE = 100.0
 # orbit and an energy error times its leverage; each from the steps' rounding and
 # their truncation bound), and the largest leverage ∫ds/v² (lane units) of a leg past
 # its first step for which it is used: beyond, rounding of the force, which it does
-# not model, may be amplified (near a hump). Rounding weighs more than truncation:
-# near a hump its share of the energy error is amplified coherently, while the
-# truncation terms are each a bound of the step's own error.
-_SHIFT_SAFETY = (3.0, 2.0)  # (rounding, truncation)
-_ENERGY_SAFETY = (2.0, 1.5)
+# not model, may be amplified (near a hump). The rounding of each step is modelled
+# as four ulps of each component of the state, summed with one sign over the leg:
+# itself a bound several times the rounding measured, even near a hump, where its
+# share of the energy error is amplified coherently; the truncation terms are each
+# estimated from the step's own terms, and carry the larger factors.
+_SHIFT_SAFETY = (1.5, 2.0)  # (rounding, truncation)
+_ENERGY_SAFETY = (1.0, 1.5)
 _SCREEN_LEVERAGE = 100.0
 
 _GL3 = tuple((float(x), float(w)) for x, w in zip(*np.polynomial.legendre.leggauss(3)))
