@@ -38,14 +38,15 @@ in float64 (`taylor_adaptive_batch` at its tol, SIMD width `recommended_simd_siz
 Writes `results/accuracy[_quick].json`.
 
 With `--periods`: the period sweeps' per-lane error estimates instead
-(`sweep_periods`, every method with `Taylor()` and `Dopri8`; the pendulum's 2047
-amplitudes 0.01 .. pi - 1e-3 and the asymmetric well's 256 releases to 0.99 of its
-hump, against 40-digit periods): per system, method, stepper and rtol the lanes'
-statuses, the true errors, and the estimate over the true error (median, 5th
-percentile, smallest, lanes below the truth).
+(`sweep_periods`, every method with `Taylor()`, `Dopri8`, `Tsit5` and `Dopri5`; the
+pendulum's 2047 amplitudes 0.01 .. pi - 1e-3 and the asymmetric well's 256 releases
+to 0.99 of its hump, against 40-digit periods from `tests/exact_periods.py`): per
+system, method, stepper and rtol the lanes' statuses, the true errors, and the
+estimate over the true error (median, 5th percentile, smallest, lanes below the
+truth).
 
     python benchmarks/accuracy.py --periods [--tols 1e-13 1e-10] \
-        [--period-methods half] [--period-solvers Dopri8]
+        [--period-methods half] [--period-solvers Dopri8 Tsit5]
 
 Writes `results/accuracy_periods[_quick].json`.
 """
@@ -55,6 +56,7 @@ import json
 import os
 import pathlib
 import platform
+import sys
 import tempfile
 import time
 
@@ -68,6 +70,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import lagrax  # noqa: E402
+
+
+sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "tests"))
+import exact_periods  # noqa: E402
 
 
 RESULTS = pathlib.Path(__file__).parent / "results"
@@ -282,45 +288,6 @@ def heyoka_method(system, n):
 # ------------------------------------------------------------------- period estimate
 
 
-def _hump_releases(n):
-    """The asymmetric well (V = x^2/2 + x^3/3, hump 1/6 at x = -1): `n` releases
-    from rest on both sides up to 0.99 of the hump's height."""
-    from scipy.optimize import brentq
-
-    V = lambda x: 0.5 * x**2 + x**3 / 3
-    left = brentq(lambda x: V(x) - 0.99 / 6, -1, 0)
-    right = brentq(lambda x: V(x) - 0.99 / 6, 0, 2)
-    half = n // 2
-    return np.concatenate(
-        [np.linspace(left, -1e-3, half), np.linspace(1e-3, right, n - half)]
-    )
-
-
-def _well_period(x0):
-    """The asymmetric well's period from rest at the float64 `x0`, to 40 digits:
-    E - V = (x - r)(x - a)(b - x)/3, x = a + (b - a)(1 - cos p)/2."""
-    import mpmath
-
-    with mpmath.workdps(40):
-        x0 = mpmath.mpf(float(x0))
-        E = x0**2 / 2 + x0**3 / 3
-        cubic = [-mpmath.mpf(1) / 3, -mpmath.mpf(1) / 2, 0, E]
-        r, a, b = sorted(mpmath.re(z) for z in mpmath.polyroots(cubic, extraprec=200))
-        x = lambda p: a + (b - a) * (1 - mpmath.cos(p)) / 2
-        f = lambda p: 1 / mpmath.sqrt(2 * (x(p) - r) / 3)
-        return float(2 * mpmath.quad(f, [0, mpmath.pi]))
-
-
-def _pendulum_period(a):
-    """The pendulum's period from rest at the float64 `a` (g = r = 1), 40 digits."""
-    import mpmath
-
-    with mpmath.workdps(40):
-        return float(
-            2 * mpmath.pi / mpmath.agm(1, mpmath.cos(mpmath.mpf(float(a)) / 2))
-        )
-
-
 def period_cases(quick, cache):
     """name -> (L, q0, exact periods): the pendulum over 0.01 .. pi - 1e-3 and the
     asymmetric well to 0.99 of its hump, references to 40 digits (cached)."""
@@ -332,13 +299,13 @@ def period_cases(quick, cache):
             "pendulum",
             pendulum.lagrangian(),
             np.linspace(0.01, np.pi - 1e-3, 256 if quick else 2047),
-            _pendulum_period,
+            exact_periods.pendulum_period,
         ),
         (
             "asymmetric_well",
             asymmetric_well.lagrangian(),
-            _hump_releases(64 if quick else 256),
-            _well_period,
+            exact_periods.hump_releases(64 if quick else 256),
+            exact_periods.well_period,
         ),
     ]:
         path = pathlib.Path(cache) / f"periods_{name}_{len(q0)}.npy"
@@ -358,7 +325,12 @@ def run_periods(quick, cache, rtols, methods=None, solvers=None):
     `tolerance_not_met` and those returned with an estimate below their true
     error."""
     rows = []
-    steppers = {"Taylor": lagrax.Taylor(), "Dopri8": dfx.Dopri8()}
+    steppers = {
+        "Taylor": lagrax.Taylor(),
+        "Dopri8": dfx.Dopri8(),
+        "Tsit5": dfx.Tsit5(),
+        "Dopri5": dfx.Dopri5(),
+    }
     for system, (L, q0, T) in period_cases(quick, cache).items():
         for method in ("matched", "half", "full", "quarter"):
             if methods and method not in methods:

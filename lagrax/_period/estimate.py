@@ -8,7 +8,8 @@ energy error, which moves the end of the leg by its leverage $\int ds/\dot q^2$ 
 the rest of it (Gauss–Legendre on the step's velocity polynomial); and the far
 turning point's band times $d\tau/dE$, the finite part of that integral from rest.
 Lanes it cannot vouch for, and every other method and stepper, are solved a second
-time at `TIGHTER` times the tolerances (`second_solve_estimate`).
+time at `TIGHTER` times the tolerances (`second_solve_estimate`; "half" by
+"matched").
 """
 
 import functools
@@ -25,16 +26,20 @@ from .._taylor.stepper import TaylorStepper
 
 
 # The second solve: at `TIGHTER` times the tolerances (for "matched", from the far
-# turning point moved across its rounding band), nearer the truth than the first by
-# about that factor, so the difference is about the first solve's error: `_SAFETY`
-# times it, plus a fraction of rtol (`_FLOOR_RTOL`, per stepper: a lane whose error
-# happens to cancel at one tolerance and not at the other, where the two solves agree
-# more closely than either agrees with the truth; more often with the few long steps
-# of a Taylor step), plus `_FLOOR_ULPS` ulps. Calibrated on exact periods
+# turning point moved across its rounding band; for "half", by "matched"), nearer
+# the truth than the first by about that factor, so the difference is about the
+# first solve's error: `_SAFETY` times it, plus a fraction of rtol (`_FLOOR_RTOL`,
+# per stepper: a lane whose error happens to cancel at one tolerance and not at the
+# other, where the two solves agree more closely than either agrees with the truth;
+# more often with the few long steps of a Taylor step, and where the many short
+# steps of a pair of low order leave rounding errors of the same size in both
+# solves), plus `_FLOOR_ULPS` ulps. Calibrated on exact periods
 # (benchmarks/accuracy.py --periods, tests/test_estimate.py).
 TIGHTER = 0.1
 _SAFETY = 4.0
-_FLOOR_RTOL = {"taylor": 0.1, "runge_kutta": 0.02}
+_FLOOR_RTOL = {"taylor": 0.1, "runge_kutta": 0.02, "low_order": 0.3}
+# A Runge–Kutta pair below this error order is of low order (Tsit5, Dopri5).
+_LOW_ORDER = 7
 _FLOOR_ULPS = 16.0
 #: A lane's period is trusted when its estimate is below this many times rtol.
 PROMISE = 100.0
@@ -42,11 +47,13 @@ PROMISE = 100.0
 # orbit and an energy error times its leverage; each from the steps' rounding and
 # their truncation bound), and the largest leverage ∫ds/v² (lane units) of a leg past
 # its first step for which it is used: beyond, rounding of the force, which it does
-# not model, may be amplified (near a hump). Rounding weighs more than truncation:
-# near a hump its share of the energy error is amplified coherently, while the
-# truncation terms are each a bound of the step's own error.
-_SHIFT_SAFETY = (3.0, 2.0)  # (rounding, truncation)
-_ENERGY_SAFETY = (2.0, 1.5)
+# not model, may be amplified (near a hump). The rounding of each step is modelled
+# as four ulps of each component of the state, summed with one sign over the leg:
+# itself a bound several times the rounding measured, even near a hump, where its
+# share of the energy error is amplified coherently; the truncation terms are each
+# estimated from the step's own terms, and carry the larger factors.
+_SHIFT_SAFETY = (1.5, 2.0)  # (rounding, truncation)
+_ENERGY_SAFETY = (1.0, 1.5)
 _SCREEN_LEVERAGE = 100.0
 
 _GL3 = tuple((float(x), float(w)) for x, w in zip(*np.polynomial.legendre.leggauss(3)))
@@ -196,10 +203,16 @@ def needs_second_solve(status, bound, rtols):
 def second_solve_estimate(T, status, T2, status2, rtols, stepper):
     """The estimate from a second solve at `TIGHTER` times the tolerances:
     `_SAFETY` times the relative difference, plus a fraction of rtol (`_FLOOR_RTOL`
-    for `stepper`) and `_FLOOR_ULPS` ulps; infinite where the second solve failed and
+    for `stepper`: a Taylor step, a Runge–Kutta pair, one of low order) and
+    `_FLOOR_ULPS` ulps; infinite where the second solve failed and
     the requested one did not (that says nothing sure)."""
     eps = jnp.finfo(T.dtype).eps
-    kind = "taylor" if isinstance(stepper, TaylorStepper) else "runge_kutta"
+    if isinstance(stepper, TaylorStepper):
+        kind = "taylor"
+    elif stepper.error_order < _LOW_ORDER:
+        kind = "low_order"
+    else:
+        kind = "runge_kutta"
     est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + _FLOOR_RTOL[kind] * rtols
     est = est + _FLOOR_ULPS * eps
     return jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)

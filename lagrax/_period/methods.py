@@ -26,6 +26,7 @@ from .events import MAX_SPEED, POSITION, TURNING
 from .far_turning_point import far_turning_point
 from .kernel import Lanes, PassResult, run_pass
 from .loop import Pass
+from .quantities import mechanics
 from .symmetry import is_turning_point, mirror_symmetric
 
 
@@ -40,8 +41,8 @@ class Method(eqx.Module):
 
     @property
     def pass_(self):
-        legs = 2 if self.method == "full" else 1
-        return Pass(self.stepper, legs, self.width, self.max_steps, self.screened)
+        # (One leg per pass: "full" returns in a second pass, `_swing`.)
+        return Pass(self.stepper, 1, self.width, self.max_steps, self.screened)
 
     @property
     def screened(self):
@@ -99,11 +100,18 @@ class _Solve(eqx.Module):
         L, m = self.L, self.m
         return run_pass(L, m.pass_, lanes, self.consts, self.t_max, self.energy_tol)
 
-    def leg_b(self, res: PassResult, lanes: Lanes, shift) -> tuple[Lanes, LegA]:
+    def leg_b(
+        self, res: PassResult, lanes: Lanes, shift, only=None
+    ) -> tuple[Lanes, LegA]:
         """The second leg of "matched": from rest at the far turning point (moved by
-        `shift` rounding bands), ending at the first leg's meeting point."""
+        `shift` rounding bands), ending at the first leg's meeting point; with
+        `only`, for those lanes alone (the others keep their first leg's status and
+        take no step)."""
         st_a, t_a, q_m, qd_a = res.status, res.t_event, res.q_end, res.qdot_end
         q0 = lanes.q0
+        if only is not None:
+            # (NaN takes no Newton step in the far turning point's loops.)
+            q0, q_m = jnp.where(only, q0, jnp.nan), jnp.where(only, q_m, jnp.nan)
         # Any point of leg A serves as the meeting point: leg B ends at its
         # position. Where the point of maximum speed cannot be located (a well
         # whose curvature vanishes at its bottom, q̈ = -q³: q̈ has a triple zero in
@@ -113,12 +121,17 @@ class _Solve(eqx.Module):
         st_a = jnp.where(meet & (qd_a != 0), SUCCESS, st_a)  # (moving: not the release)
         far = far_turning_point(self.L, self.consts, q0, q_m, self.m.estimate)
         # (L beyond the vectorized sines' range: the solver's failure, not the well's.)
-        st_a = jnp.where((st_a == SUCCESS) & ~far.in_range, SOLVER_FAILED, st_a)
+        out_of_range = (st_a == SUCCESS) & ~far.in_range
+        if only is not None:
+            out_of_range = out_of_range & only
+        st_a = jnp.where(out_of_range, SOLVER_FAILED, st_a)
         # (Only where shifted: a band that rounding leaves undefined, NaN next to a
         # singular point, must not turn the requested solve's start into NaN,
         # reported as a non-finite release point.)
         q1 = far.q1 + jnp.where(shift != 0, shift * far.band, 0.0)
         go = far.found & (st_a == SUCCESS)
+        if only is not None:
+            go = go & only
         lanes_b = Lanes(
             jnp.where(go, q1, jnp.nan),
             q_m,
@@ -171,6 +184,9 @@ def run_method(
     if m.method == "quarter" and screened:
         lanes0 = Lanes(q0, zeros, _kinds(q0, MAX_SPEED), rtols, atols, live)
         return _quarter_screened(solve, lanes0, rtols)
+    reference = m.estimate and jnp.ndim(shift) == 1
+    if m.method == "full" or (m.method == "half" and reference):
+        return _swing(solve, q0, rtols, atols, shift if reference else None)
     if m.method != "matched":
         return _one_pass(solve, q0, zeros, rtols, atols, live)
     lanes0 = Lanes(q0, zeros, _kinds(q0, MAX_SPEED), rtols, atols, live)
@@ -180,19 +196,15 @@ def run_method(
 
 
 def _one_pass(solve: _Solve, q0, zeros, rtols, atols, live) -> MethodResult:
-    """ "half", "quarter" or "full": one pass to the event."""
-    kind = {"half": TURNING, "quarter": MAX_SPEED, "full": TURNING}[solve.m.method]
+    """ "half" or "quarter": one pass to the event."""
+    kind = {"half": TURNING, "quarter": MAX_SPEED}[solve.m.method]
     res = solve.run(Lanes(q0, zeros, _kinds(q0, kind), rtols, atols, live))
     return _one_pass_result(solve, q0, rtols, res)
 
 
 def _one_pass_result(solve: _Solve, q0, rtols, res: PassResult) -> MethodResult:
-    """The period of "half", "quarter" or "full" from its pass."""
-    kind, factor = {
-        "half": (TURNING, 2.0),
-        "quarter": (MAX_SPEED, 4.0),
-        "full": (TURNING, 1.0),
-    }[solve.m.method]
+    """The period of "half" or "quarter" from its pass."""
+    kind, factor = {"half": (TURNING, 2.0), "quarter": (MAX_SPEED, 4.0)}[solve.m.method]
     status, t_e, q_e, qd_e = res.status, res.t_event, res.q_end, res.qdot_end
     # The far side of the swing, for `blame_coordinates`: where the solve stopped, or
     # past the point of maximum speed by as much again.
@@ -222,15 +234,29 @@ def _matched(solve: _Solve, lanes0: Lanes, shift, rtols) -> MethodResult:
     not unrolled). Two calls of the pass would put two copies of the kernel in the
     program: everything but its identical fusions compiled twice, and the
     forward-mode derivative's tangent kernels twice."""
+    res_a, aux, res_b = _two_legs(solve, lanes0, shift, rtols)
+    out = solve.combine(res_a, res_b, aux, rtols)
+    return MethodResult(out.periods, out.status, out.steps, out.executed, out.q_far)
+
+
+def _two_legs(solve: _Solve, lanes0: Lanes, shift, rtols):
+    """The two legs of "matched": `(res_a, LegA, res_b)`."""
+    return _two_passes(solve, lanes0, lambda r, l: solve.leg_b(r, l, shift), rtols)
+
+
+def _two_passes(solve: _Solve, lanes0: Lanes, second, rtols):
+    """Two passes through one instance of the kernel: `second(res, lanes) ->
+    (lanes, aux)` makes the second pass's lanes from the first's results. Returns
+    `(res_a, aux, res_b)`."""
     res_shape = jax.eval_shape(lambda: solve.run(lanes0))
-    aux_shape = jax.eval_shape(lambda r: solve.leg_b(r, lanes0, shift)[1], res_shape)
+    aux_shape = jax.eval_shape(lambda r: second(r, lanes0)[1], res_shape)
 
     def body(c):
         k, lanes, res_a, aux, _ = c
         res = solve.run(lanes)
         leg_a = k % 2 == 0
         lanes, aux = jax.lax.cond(
-            leg_a, lambda: solve.leg_b(res, lanes, shift), lambda: (lanes, aux)
+            leg_a, lambda: second(res, lanes), lambda: (lanes, aux)
         )
         res_a = jax.tree.map(lambda x, y: jnp.where(leg_a, x, y), res, res_a)
         return k + 1, lanes, res_a, aux, res
@@ -240,8 +266,96 @@ def _matched(solve: _Solve, lanes0: Lanes, shift, rtols) -> MethodResult:
     init = (jnp.zeros((), jnp.int32), lanes0, *_blank((res_shape, aux_shape)))
     init = (*init, _blank(res_shape))
     _, _, res_a, aux, res_b = jax.lax.while_loop(lambda c: c[0] < passes, body, init)
-    out = solve.combine(res_a, res_b, aux, rtols)
-    return MethodResult(out.periods, out.status, out.steps, out.executed, out.q_far)
+    return res_a, aux, res_b
+
+
+# Where `_even_in_qdot` compares L(q0, w) with L(q0, -w) (exact binary fractions).
+_EVEN_SPEEDS = (0.375, 1.5)
+
+
+def _even_in_qdot(L, consts, q0):
+    """Whether L(q0, q̇) = L(q0, -q̇) at two speeds, to rounding: where "matched"
+    (time-reversal symmetric legs) is a reference for "full". Sampled, not proven:
+    an L that passes wrongly gets an estimate from the wrong period, too large."""
+    mech = mechanics(L, consts)
+    eps = jnp.finfo(q0.dtype).eps
+    zero = jnp.zeros((), q0.dtype)
+
+    def one(q):
+        q = jnp.where(jnp.isfinite(q), q, 0.0)[None]
+        even = jnp.ones((), bool)
+        for w in _EVEN_SPEEDS:
+            a = mech.value(q, jnp.full((1,), w, q.dtype), zero)
+            b = mech.value(q, jnp.full((1,), -w, q.dtype), zero)
+            even = even & (jnp.abs(a - b) <= 8 * eps * (jnp.abs(a) + jnp.abs(b)))
+        return even
+
+    return jax.vmap(one)(jax.lax.stop_gradient(q0))
+
+
+def _swing(solve: _Solve, q0, rtols, atols, shift) -> MethodResult:
+    """ "half", and "full" (its return leg in a second pass, from rest at the
+    turning point the first found), with the estimate's second solve (the lanes
+    where `shift`, if given, is not zero) by "matched" where it applies ("full":
+    where L is even in q̇; elsewhere "full" again).
+
+    Through the bottom of the swing these methods lose to the energy errors their
+    steps make, amplified near a hump, by an amount that does not scale with the
+    tolerance (the same in a solve at tighter tolerances, so that their difference
+    cannot see it), while "matched" pins the energy at both turning points. All in
+    the passes of one instance of the kernel: the first runs the outgoing leg and
+    the reference's first leg (each lane its own event), the second the return leg
+    and the reference's second leg."""
+    full = solve.m.method == "full"
+    zeros = jnp.zeros_like(q0)
+    live = jnp.ones(q0.shape, bool)
+    ref = jnp.zeros(q0.shape, bool) if shift is None else shift != 0
+    if full:
+        ref = ref & _even_in_qdot(solve.L, solve.consts, q0)
+    kinds = jnp.where(ref, MAX_SPEED, TURNING).astype(jnp.int32)
+    lanes0 = Lanes(q0, zeros, kinds, rtols, atols, live)
+
+    def second(res, lanes):
+        if shift is None:
+            lanes_m, aux = lanes, None
+        else:
+            lanes_m, aux = solve.leg_b(res, lanes, shift, only=ref)
+        if not full:
+            return lanes_m, aux
+        # The return leg from rest where the outgoing one ended (its state carries
+        # the event's tangent).
+        back = ~ref & (res.status == SUCCESS)
+        lanes = Lanes(
+            jnp.where(ref, lanes_m.q0, jnp.where(back, res.q_end, jnp.nan)),
+            jnp.where(ref, lanes_m.target, 0.0),
+            jnp.where(ref, lanes_m.kind, TURNING).astype(jnp.int32),
+            lanes.rtol,
+            lanes.atol,
+            lanes.live,
+        )
+        return lanes, aux
+
+    res_a, aux, res_b = _two_passes(solve, lanes0, second, rtols)
+    if full:
+        status = jnp.where(res_a.status == SUCCESS, res_b.status, res_a.status)
+        T = jnp.where(status == SUCCESS, res_a.t_event + res_b.t_event, jnp.nan)
+        back = res_a.status == SUCCESS
+        steps = res_a.steps + jnp.where(back, res_b.steps, 0)
+        own = MethodResult(T, status, steps, res_a.executed, res_a.q_end)
+    else:
+        own = _one_pass_result(solve, q0, rtols, res_a)
+    executed = res_a.executed + res_b.executed
+    if shift is None:
+        return dataclasses.replace(own, executed=executed)
+    matched = solve.combine(res_a, res_b, aux, rtols)
+    pick = lambda x, y: jnp.where(ref, x, y)
+    return MethodResult(
+        pick(matched.periods, own.periods),
+        pick(matched.status, own.status),
+        pick(matched.steps, own.steps),
+        executed,
+        pick(matched.q_far, own.q_far),
+    )
 
 
 def _pack(out: MethodResult, dtype):
