@@ -143,7 +143,7 @@ def _lagrax(args):
     def call(tol, t1=tr.T1):
         sol = lagrax.simulate_batch(
             L, q0, v0, 0.0, t1, solver=lagrax.Taylor(order=args.order), rtol=tol,
-            atol=tol, max_steps=1 << 16, throw=False, width=args.width,
+            atol=tol, max_steps=1 << 16, throw=False, lanes=args.width,
         )  # fmt: skip
         return jax.block_until_ready(sol)
 
