@@ -1101,44 +1101,68 @@ def _tree_sum(xs):
 # size class, e.g. a pendulum in the period tier's, would sum mostly padding);
 # beyond, over every row at once.
 _ALL_ROWS = 64
+# Orders per window step of `_windowed_sums`.
+_SPAN = 4
 
 
-def _inner_sums(K, H, C, chunks):
+def _inner_sums(K):
     r"""Per order $k = 1..K-1$, a function of the histories (`Hp`, `Hq`: `(K, H,
     W)`, order first) and the rows' weights `(u0, u1)` giving every row's Cauchy
     terms strictly inside the sum, $\sum_{j=1}^{k-1} (u_0 + u_1 j / k)\, P_j
-    Q_{k-j}$: one branch per order (a switch), so that each sums exactly its
-    terms; over all rows at once where `H > _ALL_ROWS`, else over `chunks` chunks
-    of `C` rows."""
-
-    def terms(k, p, q, u0, u1):
-        pq = [p[j] * q[k - j] for j in range(1, k)]
-        plain = _tree_sum(pq)
-        weighted = _tree_sum([float(j) * x for j, x in enumerate(pq, 1)])
-        return u0 * plain + u1 * (weighted * (1.0 / k))
+    Q_{k-j}$, over every row: one branch per order (a switch), so that each sums
+    exactly its terms."""
 
     def branch(k):
         def fn(Hp, Hq, u0, u1):
             if k == 1:
                 return jnp.zeros_like(u0)
-            if H > _ALL_ROWS:
-                return terms(k, Hp, Hq, u0, u1)
+            pq = [Hp[j] * Hq[k - j] for j in range(1, k)]
+            plain = _tree_sum(pq)
+            weighted = _tree_sum([float(j) * x for j, x in enumerate(pq, 1)])
+            return u0 * plain + u1 * (weighted * (1.0 / k))
+
+        return fn
+
+    return [branch(k) for k in range(1, K)]
+
+
+def _windowed_sums(K, C, chunks):
+    r"""`_inner_sums`' terms for the rows in use (`chunks` chunks of `C` rows),
+    from `Hp` (`(K + _SPAN, H, W)`) and `R` (`(2K + _SPAN, H, W)`) holding $Q_i$
+    at $K - i$, both zero where not yet computed: the window $R_{K-k+j} =
+    Q_{k-j}$ lines up with $P_j$ and the terms $j \ge k$ read zeros, so that one
+    branch serves every order whose terms fit its window, a multiple of `_SPAN`
+    orders (a few branches, not one per order: a smaller executable). Returns
+    `index(k)`, the branch of order $k$, and the branches, functions of `(k, Hp,
+    R, u0, u1)`."""
+
+    def branch(b):
+        span = (b + 1) * _SPAN
+
+        def fn(k, Hp, R, u0, u1):
+            dtype = Hp.dtype
+            W = Hp.shape[2]
+            inv = 1.0 / k.astype(dtype)
+            zero, one = jnp.zeros((), jnp.int32), jnp.ones((), jnp.int32)
 
             def chunk(c, out):
                 r = (c * C).astype(jnp.int32)
-                zero = jnp.zeros((), jnp.int32)
-                part = lambda x: lax.dynamic_slice(
-                    x, (zero, r, zero), (k, C, x.shape[2])
-                )
+                p = lax.dynamic_slice(Hp, (one, r, zero), (span, C, W))
+                q = lax.dynamic_slice(R, (K - k + 1, r, zero), (span, C, W))
+                pq = [p[i] * q[i] for i in range(span)]
+                plain = _tree_sum(pq)
+                weighted = _tree_sum([float(i) * x for i, x in enumerate(pq, 1)])
                 rows = lambda x: lax.dynamic_slice_in_dim(x, r, C)
-                value = terms(k, part(Hp), part(Hq), rows(u0), rows(u1))
+                value = rows(u0) * plain + rows(u1) * (weighted * inv)
                 return lax.dynamic_update_slice_in_dim(out, value, r, 0)
 
             return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
 
         return fn
 
-    return [branch(k) for k in range(1, K)]
+    branches = [branch(b) for b in range(max(1, -(-(K - 2) // _SPAN)))]
+    index = lambda k: (jnp.maximum(k, 2) - 2) // _SPAN
+    return index, branches
 
 
 def _row_form(tape, D, P0, Q0):
@@ -1239,7 +1263,17 @@ def compact_coefficients(
     rows = _bound(tape.blocks[2]) if rows is None else rows
     C = tape.cgat.shape[2]
     chunks = (rows + C - 1) // C
-    sums = _inner_sums(K, H, C, chunks)
+    if H > _ALL_ROWS:
+        sums = _inner_sums(K)
+        inner_of = lambda k, Hp, Hq: lax.switch(k - 1, sums, Hp, Hq, u0, u1)
+        at_q = lambda k: k
+    else:
+        # Q's history reversed (`_windowed_sums`).
+        Hp = jnp.zeros((K + _SPAN, H, W), dtype).at[0].set(P0)
+        Hq = jnp.zeros((2 * K + _SPAN, H, W), dtype).at[K].set(Q0)
+        index, windows = _windowed_sums(K, C, chunks)
+        inner_of = lambda k, Hp, Hq: lax.switch(index(k), windows, k, Hp, Hq, u0, u1)
+        at_q = lambda k: K - k
 
     def store(k, Y, Hp, Hq):
         """The histories' order `k` from `Y`: every row, or the rows in use."""
@@ -1254,7 +1288,7 @@ def compact_coefficients(
             r = (c * C).astype(jnp.int32)
             at = lax.dynamic_slice_in_dim(tape.hist, r, C, 1)
             Hp = lax.dynamic_update_slice(Hp, Y[at[0]][None], (k, r, zero))
-            Hq = lax.dynamic_update_slice(Hq, Y[at[1]][None], (k, r, zero))
+            Hq = lax.dynamic_update_slice(Hq, Y[at[1]][None], (at_q(k), r, zero))
             return Hp, Hq
 
         return lax.fori_loop(0, chunks, put, (Hp, Hq))
@@ -1265,7 +1299,7 @@ def compact_coefficients(
         t_k = jnp.where(k == 1, 1.0, 0.0).astype(dtype) * jnp.ones((1, W), dtype)
         y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
         Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, y_k]), (first, i32(0)))
-        inner = lax.switch(k - 1, sums, Hp, Hq, u0, u1)
+        inner = inner_of(k, Hp, Hq)
         Y = _order_k(tape, Y, F, inner, D, blocks)
         Hp, Hq = store(k, Y, Hp, Hq)
         f = Y[tape.outs] / (k + 1).astype(dtype)
