@@ -514,7 +514,7 @@ def _chain_error(ys, path):
 def work_chain(args):
     """`simulate_batch` of a chain (`--n` links, 256 releases, t = 10, Taylor-16
     at rtol = atol = `--tol`), `LAGRAX_COMPACT` choosing the tier: import, the
-    first call, then the best of three."""
+    first call, then the best of three (wall and CPU seconds)."""
     jax, lagrax, row, _ = _jax_import()
     import_s = row["import_s"]
     L = _chain(args.links)
@@ -523,22 +523,31 @@ def work_chain(args):
         L, q0, v0, 0.0, 10.0, solver=lagrax.Taylor(order=16), rtol=args.tol,
         atol=args.tol, max_steps=1 << 16,
     )  # fmt: skip
-    t = time.perf_counter()
-    sol = jax.block_until_ready(run())
-    first = time.perf_counter() - t
-    best = float("inf")
-    for _ in range(3):
-        t = time.perf_counter()
-        sol = jax.block_until_ready(run())
-        best = min(best, time.perf_counter() - t)
+    (sol, first, first_cpu), times = _clocked(lambda: jax.block_until_ready(run()))
+    best, best_cpu = (min(x) for x in zip(*times))
     import numpy as np
 
     ys = np.concatenate([np.asarray(sol.ys[0][:, -1]), np.asarray(sol.ys[1][:, -1])], 1)
     return dict(
         links=args.links, tol=args.tol, import_s=import_s, first_s=first,
-        steady_s=best, steps=float(np.mean(np.asarray(sol.stats["num_steps"]))),
+        first_cpu_s=first_cpu, steady_s=best, steady_cpu_s=best_cpu,
+        steps=float(np.mean(np.asarray(sol.stats["num_steps"]))),
         max_error=_chain_error(ys, args.reference),
     )  # fmt: skip
+
+
+def _clocked(fn, repeats=3):
+    """`(out, wall, cpu)` of a first call of `fn`, then `repeats` more calls'
+    `(wall, cpu)` seconds."""
+    start, cpu = time.perf_counter(), time.process_time()
+    out = fn()
+    first = (out, time.perf_counter() - start, time.process_time() - cpu)
+    times = []
+    for _ in range(repeats):
+        start, cpu = time.perf_counter(), time.process_time()
+        fn()
+        times.append((time.perf_counter() - start, time.process_time() - cpu))
+    return first, times
 
 
 def work_chain_heyoka(args):
@@ -555,12 +564,12 @@ def work_chain_heyoka(args):
     q0, v0 = _chain_releases(n)
     y0 = np.concatenate([q0, v0], 1)
     B = hy.recommended_simd_size()
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     tb = hy.taylor_adaptive_batch(
         _chain(n, hy=True), np.zeros((2 * n, B)), tol=args.tol,
         compact_mode=args.compact,
     )  # fmt: skip
-    build = time.perf_counter() - t
+    build, build_cpu = time.perf_counter() - t, time.process_time() - cpu
 
     def run():
         out = np.empty_like(y0)
@@ -572,20 +581,15 @@ def work_chain_heyoka(args):
             out[i : i + B] = tb.state.T[: min(B, len(y0) - i)]
         return out
 
-    t = time.perf_counter()
-    ys = run()
-    first = time.perf_counter() - t
-    best = float("inf")
-    for _ in range(3):
-        t = time.perf_counter()
-        ys = run()
-        best = min(best, time.perf_counter() - t)
+    (ys, first, first_cpu), times = _clocked(run)
+    best, best_cpu = (min(x) for x in zip(*times))
     if args.save:
         np.save(args.save, ys)
     return dict(
         links=n, tol=args.tol, compact=args.compact, import_s=import_s,
-        build_s=build, first_run_s=first, steady_s=best, order=tb.order,
-        max_error=_chain_error(ys, args.reference),
+        build_s=build, build_cpu_s=build_cpu, first_run_s=first,
+        first_run_cpu_s=first_cpu, steady_s=best, steady_cpu_s=best_cpu,
+        order=tb.order, max_error=_chain_error(ys, args.reference),
     )  # fmt: skip
 
 
@@ -917,29 +921,41 @@ def tier_rows(core):
     return out
 
 
-def chain_rows(core, links):
+def chain_rows(core, links, rounds=3):
     """Chains of `links` links, 256 releases, t = 10, error against heyoka.py at
     tol 1e-15: heyoka.py in compact and default mode (tol 1e-11), lagrax's
     compact tier (its disk cache empty, then filled: a machine that has run
     lagrax) and its specialized program (Taylor-16, rtol = atol = 1e-12); each a
-    fresh process pinned to `core`."""
+    fresh process pinned to `core`, heyoka.py's compact mode and lagrax's filled
+    cache alternated `rounds` times (a shared machine's load then weighs on both
+    alike)."""
     rows = []
     for n in links:
         with tempfile.TemporaryDirectory() as folder:
             ref = os.path.join(folder, "ref.npy")
             spawn(core, "chain_heyoka", links=n, tol=1e-15, compact=True, save=ref)
             common = dict(links=n, reference=ref)
-            for compact in (True, False):
-                if not compact and n > 6:
-                    continue  # (its build runs for minutes)
-                row = spawn(core, "chain_heyoka", tol=1e-11, compact=compact, **common)
-                rows.append(dict(name=f"heyoka.py batch, compact={compact}", **row))
+            if n <= 6:  # (heyoka.py's default build runs for minutes beyond)
+                row = spawn(core, "chain_heyoka", tol=1e-11, compact=False, **common)
+                rows.append(dict(name="heyoka.py batch, compact=False", **row))
                 print(json.dumps(rows[-1]), flush=True)
             cache = os.path.join(folder, "cache")
             env = dict(LAGRAX_COMPACT="2", LAGRAX_CACHE_DIR=cache)
-            for label in ("compact tier, empty cache", "compact tier, filled cache"):
+            row = spawn(core, "chain", env=env, **common)
+            rows.append(
+                dict(name="lagrax simulate_batch, compact tier, empty cache", **row)
+            )
+            print(json.dumps(rows[-1]), flush=True)
+            for _ in range(rounds):
+                row = spawn(core, "chain_heyoka", tol=1e-11, compact=True, **common)
+                rows.append(dict(name="heyoka.py batch, compact=True", **row))
+                print(json.dumps(rows[-1]), flush=True)
                 row = spawn(core, "chain", env=env, **common)
-                rows.append(dict(name=f"lagrax simulate_batch, {label}", **row))
+                rows.append(
+                    dict(
+                        name="lagrax simulate_batch, compact tier, filled cache", **row
+                    )
+                )
                 print(json.dumps(rows[-1]), flush=True)
             if n <= 4:
                 env = dict(LAGRAX_COMPACT="0")

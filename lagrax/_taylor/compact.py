@@ -258,6 +258,9 @@ class CompactTape(eqx.Module):
             B1cau=self.cgat.shape[0],
             B1slin=self.sgat.shape[0],
             B1dlin=self.dgat.shape[0],
+            Gc=self.cgat.shape[2],
+            Gl=self.sgat.shape[2],
+            G0=self.op0.shape[1],
             families=self.families,
         )
         out.update({f"B0{f}": cap for f, cap in zip(self.families, self.caps0)})
@@ -582,7 +585,11 @@ def build(
 ):
     """The `CompactTape` of a flattened program: `inputs` (ids of $t$ and the
     state's entries), `params` (per-lane parameter ids), `outs` ($f$'s ids).
-    `size`: a dict of smallest sizes to pad to. `traced=True`: constants that are
+    `size`: a dict of smallest sizes to pad to, and of the nodes per block (`Gc`
+    Cauchy, `Gl` linear nodes at orders >= 1, `G0` at order 0) where it holds
+    them (they override the keywords: a tape of few nodes per level, e.g. a
+    1-DOF Lagrangian's, runs fastest in narrow blocks, whose padding rows cost
+    as much as nodes). `traced=True`: constants that are
     tracers (values of an enclosing trace) become parameters after `params`, and
     the result is `(tape, their values)`.
 
@@ -599,6 +606,7 @@ def build(
     _levels(b)
     dtype = np.dtype(dtype)
     minimum = dict(size or {})
+    Gc, Gl, G0 = (minimum.get(k, v) for k, v in (("Gc", Gc), ("Gl", Gl), ("G0", G0)))
     # --- slots common to both spaces: zero, one, inputs, parameters, constants
     fixed = {b.one: 1}
     values = {0: 0.0, 1: 1.0}
@@ -709,7 +717,7 @@ def build(
     B1 = {
         form: _bucket(len(blocks1[form]), minimum.get(f"B1{form}", 1)) for form in forms
     }
-    H = _bucket3(rows + max(Gc, _CHUNK), minimum.get("H", 16))
+    H = _bucket3(rows + Gc, minimum.get("H", 16))
     P = max(len(b.params), minimum.get("p", 0))
     fams = tuple(sorted(set(fams) | set(minimum.get("families", ()))))
     for f in fams:
@@ -1088,49 +1096,73 @@ def _tree_sum(xs):
     return xs[0]
 
 
-# History rows up to which the inner terms run over every row at once; beyond, in
-# chunks of `_CHUNK` rows up to the rows in use (a small system in a large size
-# class, e.g. a pendulum in the period tier's, would sum mostly padding).
+# History rows up to which the inner terms (and the histories' updates) run in
+# chunks of a Cauchy block's rows up to the rows in use (a small system in a large
+# size class, e.g. a pendulum in the period tier's, would sum mostly padding);
+# beyond, over every row at once.
 _ALL_ROWS = 64
-_CHUNK = 8
+# Orders per window step of `_windowed_sums`.
+_SPAN = 4
 
 
-def _inner_sums(K, H, chunks):
+def _inner_sums(K):
     r"""Per order $k = 1..K-1$, a function of the histories (`Hp`, `Hq`: `(K, H,
     W)`, order first) and the rows' weights `(u0, u1)` giving every row's Cauchy
     terms strictly inside the sum, $\sum_{j=1}^{k-1} (u_0 + u_1 j / k)\, P_j
-    Q_{k-j}$: one branch per order (a switch), so that each sums exactly its
-    terms; over all rows at once where `H > _ALL_ROWS`, else over `chunks` chunks
-    of `_CHUNK` rows."""
-
-    def terms(k, p, q, u0, u1):
-        pq = [p[j] * q[k - j] for j in range(1, k)]
-        plain = _tree_sum(pq)
-        weighted = _tree_sum([float(j) * x for j, x in enumerate(pq, 1)])
-        return u0 * plain + u1 * (weighted * (1.0 / k))
+    Q_{k-j}$, over every row: one branch per order (a switch), so that each sums
+    exactly its terms."""
 
     def branch(k):
         def fn(Hp, Hq, u0, u1):
             if k == 1:
                 return jnp.zeros_like(u0)
-            if H > _ALL_ROWS:
-                return terms(k, Hp, Hq, u0, u1)
+            pq = [Hp[j] * Hq[k - j] for j in range(1, k)]
+            plain = _tree_sum(pq)
+            weighted = _tree_sum([float(j) * x for j, x in enumerate(pq, 1)])
+            return u0 * plain + u1 * (weighted * (1.0 / k))
+
+        return fn
+
+    return [branch(k) for k in range(1, K)]
+
+
+def _windowed_sums(K, C, chunks):
+    r"""`_inner_sums`' terms for the rows in use (`chunks` chunks of `C` rows),
+    from `Hp` (`(K + _SPAN, H, W)`) and `R` (`(2K + _SPAN, H, W)`) holding $Q_i$
+    at $K - i$, both zero where not yet computed: the window $R_{K-k+j} =
+    Q_{k-j}$ lines up with $P_j$ and the terms $j \ge k$ read zeros, so that one
+    branch serves every order whose terms fit its window, a multiple of `_SPAN`
+    orders (a few branches, not one per order: a smaller executable). Returns
+    `index(k)`, the branch of order $k$, and the branches, functions of `(k, Hp,
+    R, u0, u1)`."""
+
+    def branch(b):
+        span = (b + 1) * _SPAN
+
+        def fn(k, Hp, R, u0, u1):
+            dtype = Hp.dtype
+            W = Hp.shape[2]
+            inv = 1.0 / k.astype(dtype)
+            zero, one = jnp.zeros((), jnp.int32), jnp.ones((), jnp.int32)
 
             def chunk(c, out):
-                r = (c * _CHUNK).astype(jnp.int32)
-                zero = jnp.zeros((), jnp.int32)
-                part = lambda x: lax.dynamic_slice(
-                    x, (zero, r, zero), (k, _CHUNK, x.shape[2])
-                )
-                rows = lambda x: lax.dynamic_slice_in_dim(x, r, _CHUNK)
-                value = terms(k, part(Hp), part(Hq), rows(u0), rows(u1))
+                r = (c * C).astype(jnp.int32)
+                p = lax.dynamic_slice(Hp, (one, r, zero), (span, C, W))
+                q = lax.dynamic_slice(R, (K - k + 1, r, zero), (span, C, W))
+                pq = [p[i] * q[i] for i in range(span)]
+                plain = _tree_sum(pq)
+                weighted = _tree_sum([float(i) * x for i, x in enumerate(pq, 1)])
+                rows = lambda x: lax.dynamic_slice_in_dim(x, r, C)
+                value = rows(u0) * plain + rows(u1) * (weighted * inv)
                 return lax.dynamic_update_slice_in_dim(out, value, r, 0)
 
             return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
 
         return fn
 
-    return [branch(k) for k in range(1, K)]
+    branches = [branch(b) for b in range(max(1, -(-(K - 2) // _SPAN)))]
+    index = lambda k: (jnp.maximum(k, 2) - 2) // _SPAN
+    return index, branches
 
 
 def _row_form(tape, D, P0, Q0):
@@ -1229,7 +1261,37 @@ def compact_coefficients(
     Z = jnp.zeros((m - 1, K + 1, W), dtype)
     Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(Y[tape.outs])
     rows = _bound(tape.blocks[2]) if rows is None else rows
-    sums = _inner_sums(K, H, (rows + _CHUNK - 1) // _CHUNK)
+    C = tape.cgat.shape[2]
+    chunks = (rows + C - 1) // C
+    if H > _ALL_ROWS:
+        sums = _inner_sums(K)
+        inner_of = lambda k, Hp, Hq: lax.switch(k - 1, sums, Hp, Hq, u0, u1)
+        at_q = lambda k: k
+    else:
+        # Q's history reversed (`_windowed_sums`).
+        Hp = jnp.zeros((K + _SPAN, H, W), dtype).at[0].set(P0)
+        Hq = jnp.zeros((2 * K + _SPAN, H, W), dtype).at[K].set(Q0)
+        index, windows = _windowed_sums(K, C, chunks)
+        inner_of = lambda k, Hp, Hq: lax.switch(index(k), windows, k, Hp, Hq, u0, u1)
+        at_q = lambda k: K - k
+
+    def store(k, Y, Hp, Hq):
+        """The histories' order `k` from `Y`: every row, or the rows in use."""
+        zero = i32(0)
+        if H > _ALL_ROWS:
+            Hp = lax.dynamic_update_slice(Hp, Y[tape.hist[0]][None], (k, zero, zero))
+            Hq = lax.dynamic_update_slice(Hq, Y[tape.hist[1]][None], (k, zero, zero))
+            return Hp, Hq
+
+        def put(c, carry):
+            Hp, Hq = carry
+            r = (c * C).astype(jnp.int32)
+            at = lax.dynamic_slice_in_dim(tape.hist, r, C, 1)
+            Hp = lax.dynamic_update_slice(Hp, Y[at[0]][None], (k, r, zero))
+            Hq = lax.dynamic_update_slice(Hq, Y[at[1]][None], (at_q(k), r, zero))
+            return Hp, Hq
+
+        return lax.fori_loop(0, chunks, put, (Hp, Hq))
 
     def order(k, carry):
         Y, Hp, Hq, Z = carry
@@ -1237,10 +1299,9 @@ def compact_coefficients(
         t_k = jnp.where(k == 1, 1.0, 0.0).astype(dtype) * jnp.ones((1, W), dtype)
         y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
         Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, y_k]), (first, i32(0)))
-        inner = lax.switch(k - 1, sums, Hp, Hq, u0, u1)
+        inner = inner_of(k, Hp, Hq)
         Y = _order_k(tape, Y, F, inner, D, blocks)
-        Hp = lax.dynamic_update_slice(Hp, Y[tape.hist[0]][None], (k, i32(0), i32(0)))
-        Hq = lax.dynamic_update_slice(Hq, Y[tape.hist[1]][None], (k, i32(0), i32(0)))
+        Hp, Hq = store(k, Y, Hp, Hq)
         f = Y[tape.outs] / (k + 1).astype(dtype)
         Z = lax.dynamic_update_slice(Z, f[:, None], (i32(0), k + 1, i32(0)))
         return Y, Hp, Hq, Z

@@ -714,7 +714,13 @@ def _tiered(call, origin, n, dtype):
     if not only and (estimate < _COMPACT_FROM or _SPENT[cfg] >= estimate):
         _notify(cfg, estimate)
         return specialized()
-    compact_cfg = dataclasses.replace(cfg, L=None, force=None, compact=True)
+    # (At most 128 lanes on the compact program: a lane group's histories, which
+    # its Cauchy sums read at every order, then stay nearer the core; a release's
+    # result does not depend on the lanes.)
+    lanes = min(cfg.width, 128)
+    compact_cfg = dataclasses.replace(
+        cfg, L=None, force=None, compact=True, width=lanes
+    )
     cpu, devices = origin[1:]
     static = (compact_cfg, shape, cpu, len(devices), tape.size)
     start = time.perf_counter()
