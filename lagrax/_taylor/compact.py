@@ -1000,6 +1000,19 @@ _FAMILY_FNS = (_affine, _switched(_RARE_FNS), _switched(_LOGIC_FNS), _sincos,
 _ONE_OPCODE = (RARE, LOGIC, TRANS)  # (families whose blocks hold one opcode)
 
 
+def _family_fns(opcodes):
+    """The families' functions, each switch with a branch per opcode in `opcodes`
+    only (None: every opcode, one program for every tape of a size class)."""
+    if opcodes is None:
+        return _FAMILY_FNS
+    pick = lambda fns: (
+        {n: f for n, f in fns.items() if OPCODE[n] in opcodes}
+        or dict([next(iter(fns.items()))])
+    )
+    return (_affine, _switched(pick(_RARE_FNS)), _switched(pick(_LOGIC_FNS)),
+            _sincos, _switched(pick(_TRANS_FNS)))  # fmt: skip
+
+
 def _factor(tape, Y, D, row, NM):
     """The inverse of one (padded) mass matrix at order 0, into the per-lane
     coefficients of its combinations; its verdict into its slot."""
@@ -1037,7 +1050,7 @@ def bounds(tape) -> tuple | None:
     return tuple(int(x) for x in np.asarray(tape.seg0)), int(blocks[1]), int(blocks[2])
 
 
-def _order0(tape, Y, D, trig, seg=None):
+def _order0(tape, Y, D, trig, seg=None, fns=_FAMILY_FNS):
     """Every node's value (order 0) and per-lane coefficients (order-0 space),
     block by block in the level order, each block's family a switch whose branch
     returns the block's values (small operands: `Y` and `D` are updated in place
@@ -1056,7 +1069,7 @@ def _order0(tape, Y, D, trig, seg=None):
         value, d0, d1 = fn(op, prm, a, b_, c, old_d[:, 0], old_d[:, 1], trig)
         return value, jnp.stack([d0, d1], axis=1)
 
-    branches = [functools.partial(family, _FAMILY_FNS[f]) for f in tape.families]
+    branches = [functools.partial(family, fns[f]) for f in tape.families]
 
     def block(i, carry):
         Y, D = carry
@@ -1230,7 +1243,7 @@ def _order_k(tape, Y, F, inner, D, blocks=None):
 
 
 def compact_coefficients(
-    tape: CompactTape, K: int, t, ys, params, trig=False, bounds=None
+    tape: CompactTape, K: int, t, ys, params, trig=False, bounds=None, opcodes=None
 ):
     r"""The Taylor coefficients $y_0..y_K$ of $y' = f(t, y)$ about $(t, y)$ from the
     tape of $f$'s program: `ys` the state's entries (a list of `(W,)` arrays, the
@@ -1239,7 +1252,10 @@ def compact_coefficients(
 
     `trig`: float64 sines and cosines at order 0 by `lagrax._jaxpr.trig.sincos`
     (vectorized) instead of the C library's. `bounds`: the tape's loop bounds as
-    Python ints (`bounds`), for a tape passed traced (each loop then a `scan`)."""
+    Python ints (`bounds`), for a tape passed traced (each loop then a `scan`).
+    `opcodes`: the opcodes the tape holds (a frozenset), for a program compiled
+    for this tape alone (in a caller's `jit`): order 0's switches get those
+    branches only (a smaller program, compiled faster)."""
     seg, blocks, rows = (None, None, None) if bounds is None else bounds
     tape = jax.tree.map(jnp.asarray, tape)
     W = t.shape[0]
@@ -1249,7 +1265,7 @@ def compact_coefficients(
     first = tape.inputs[0]  # (the inputs, then the parameters: consecutive slots)
     # --- order 0
     Y, D, state = _inputs0(tape, t, ys, params)
-    Y, D = _order0(tape, Y, D, trig, seg)
+    Y, D = _order0(tape, Y, D, trig, seg, _family_fns(opcodes))
     Y, D = Y[tape.perm], D[tape.perm]
     # --- orders 1..K-1 of the nodes, 2..K of the state
     H = tape.hist.shape[1]
@@ -1397,9 +1413,9 @@ def compact_values(tape: CompactTape, t, ys, params, trig=False):
     return Y[tape.perm[tape.outs]]
 
 
-@functools.partial(jax.jit, static_argnames=("K", "trig", "bounds"))
-def _jitted(tape, t, ys, params, K, trig, bounds):
-    return compact_coefficients(tape, K, t, ys, params, trig, bounds)
+@functools.partial(jax.jit, static_argnames=("K", "trig", "bounds", "opcodes"))
+def _jitted(tape, t, ys, params, K, trig, bounds, opcodes=None):
+    return compact_coefficients(tape, K, t, ys, params, trig, bounds, opcodes)
 
 
 def traced_once(tape: CompactTape, K: int, t, ys, params, trig=False):
@@ -1409,18 +1425,21 @@ def traced_once(tape: CompactTape, K: int, t, ys, params, trig=False):
     return _jitted(tape, t, list(ys), list(params), K, trig, bounds(tape))
 
 
-def lane_function(tape: CompactTape, K: int, trig=False):
+def lane_function(tape: CompactTape, K: int, trig=False, inline=False):
     """`(t, ys, params) -> coefficients` of a concrete tape (as `traced_once`) for
     which a caller's `jax.vmap` becomes more lanes of the one program (its arrays
     keep the lanes innermost, where `vmap` would add a leading axis to every
     array, each lane then a strided access). Its derivatives are those of the
-    plain program (`jax.custom_jvp`: forward and reverse mode)."""
+    plain program (`jax.custom_jvp`: forward and reverse mode). `inline`: the
+    program is compiled inside a caller's `jit`, for this tape alone (order 0's
+    switches with the tape's opcodes only: `compact_coefficients`)."""
     from jax import custom_batching
 
     loops = bounds(tape)
+    ops = frozenset(np.unique(np.asarray(tape.op0)).tolist()) if inline else None
 
     def plain(t, ys, params):
-        return _jitted(tape, t, list(ys), list(params), K, trig, loops)
+        return _jitted(tape, t, list(ys), list(params), K, trig, loops, ops)
 
     @custom_batching.custom_vmap
     def lanes(t, ys, params):

@@ -200,7 +200,7 @@ class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
             tape, constants = found
             entries = system.split([lane(y) for y in leaves])
             params += [lane(c).astype(t0.dtype) for c in constants]
-            lanes = compact.lane_function(tape, K, trig=True)
+            lanes = compact.lane_function(tape, K, trig=True, inline=True)
             coefs = lanes(lane(t0), entries, params)
         h = jnp.asarray(t1 - t0, t0.dtype)
         ends = [horner(c, h) for c in coefs]
@@ -216,7 +216,7 @@ class AbstractTaylorSolver(dfx.AbstractAdaptiveSolver):
                 ys1 = [sg(y) for y in system.join(ends)]
                 f1 = system.coefficients(1, lane(t0 + h), ys1, params)
             else:
-                lanes1 = compact.lane_function(tape, 1, trig=True)
+                lanes1 = compact.lane_function(tape, 1, trig=True, inline=True)
                 f1 = lanes1(lane(t0 + h), [sg(y) for y in ends], params)
             for i, c in enumerate(coefs):
                 defect = sg(_defect(c, f1[i][1], h, K))
