@@ -10,7 +10,7 @@ from jaxtyping import Array, Float, Int
 from .._results import SUCCESS, TOLERANCE_NOT_MET
 from .estimate import PROMISE, second_solve_estimate, TIGHTER
 from .finish import blame_coordinates
-from .methods import run_method
+from .methods import Reference, run_method
 
 
 class Periods(eqx.Module):
@@ -63,35 +63,58 @@ def periods(L, m, devices, q0, consts, rtol, atol, t_max, energy_tol) -> Periods
 def device_periods(L, m, q0, consts, rtol, atol, t_max, energy_tol) -> Periods:
     """Periods, statuses, steps and error estimates of the lanes of one device. With
     `m.screened` the estimate is the first-order bound, and a second solve only of
-    the lanes it cannot vouch for (`run_method`); otherwise the estimate's second
-    solve runs in the same queue as the first (the second half of the lanes, at
-    tighter tolerances): one compiled kernel, balanced work."""
+    the lanes it cannot vouch for (`run_method`); otherwise the estimate's solves
+    run in the same queue as the first (after the requested lanes: at tighter
+    tolerances, and from the far turning point moved across its band): one
+    compiled kernel, balanced work."""
     n = q0.shape[0]
     full = lambda x, k: jnp.full((n,), k * x, q0.dtype)
 
-    def solve(q0, rtols, atols, shift, screened=False):
-        args = (consts, rtols, atols, t_max, energy_tol, shift, screened)
+    def solve(q0, rtols, atols, screened=False, second=None):
+        args = (consts, rtols, atols, t_max, energy_tol, screened, second)
         return run_method(L, m, q0, *args)
 
     if m.screened:
-        out = solve(q0, full(rtol, 1.0), full(atol, 1.0), 0.0, True)
+        out = solve(q0, full(rtol, 1.0), full(atol, 1.0), True)
         T, status, steps, q_far = out.periods, out.status, out.steps, out.q_far
         # The bound where it vouches for a lane; the second solve's estimate where not.
         T2, status2 = out.periods2, out.status2
         est2 = second_solve_estimate(T, status, T2, status2, rtol, m.stepper)
         est = jnp.where(out.redo, est2, out.bound)
     elif m.estimate:
-        lanes = jnp.concatenate([q0, q0])
-        rtols = jnp.concatenate([full(rtol, 1.0), full(rtol, TIGHTER)])
-        atols = jnp.concatenate([full(atol, 1.0), full(atol, TIGHTER)])
-        shift = jnp.concatenate([jnp.zeros(n, q0.dtype), jnp.ones(n, q0.dtype)])
-        out = solve(lanes, rtols, atols, shift)
-        T, T2 = out.periods[:n], out.periods[n:]
-        status, status2 = out.status[:n], out.status[n:]
-        steps, q_far = out.steps[:n] + out.steps[n:], out.q_far[:n]
-        est = second_solve_estimate(T, status, T2, status2, rtol, m.stepper)
+        # The requested solve, the second at tighter tolerances and, for the methods
+        # with a far turning point, a third from it moved across its rounding band:
+        # the band's share of the error is then a term of its own, not one that may
+        # cancel the truncation's in the second solve. The third continues the first
+        # leg of the lane whose period it is compared with ("matched": the requested
+        # solve; "half", "full": their reference), running only its second leg.
+        band = m.method in ("matched", "half", "full")
+        k = 3 if band else 2
+        tight = full(TIGHTER, 1.0)
+        base = full(1.0, 1.0) if m.method == "matched" else tight
+        scale = jnp.concatenate([full(1.0, 1.0), tight, base][:k])
+        lanes = jnp.tile(q0, k)
+        i = jnp.arange(n)
+        src = i if m.method == "matched" else n + i
+        second = None
+        if band:
+            second = Reference(
+                ref=jnp.arange(k * n) >= n,
+                shift=jnp.concatenate([full(0.0, 1.0), full(0.0, 1.0), full(1.0, 1.0)]),
+                source=jnp.concatenate([i, n + i, src]),
+            )
+        out = solve(lanes, scale * rtol, scale * atol, second=second)
+        T, T2 = out.periods[:n], out.periods[n : 2 * n]
+        status, status2 = out.status[:n], out.status[n : 2 * n]
+        steps = jnp.sum(out.steps.reshape(k, n), axis=0)
+        q_far = out.q_far[:n]
+        shifted = None
+        if band:
+            T3, status3 = out.periods[2 * n :], out.status[2 * n :]
+            shifted = (T3, status3, out.periods[src], out.status[src])
+        est = second_solve_estimate(T, status, T2, status2, rtol, m.stepper, shifted)
     else:
-        out = solve(q0, full(rtol, 1.0), full(atol, 1.0), 0.0)
+        out = solve(q0, full(rtol, 1.0), full(atol, 1.0))
         status = blame_coordinates(L, consts, q0, out.q_far, out.status)
         T = jnp.where(status == SUCCESS, out.periods, jnp.nan)
         return Periods(T, status, out.steps, out.executed, jnp.full_like(T, jnp.nan))

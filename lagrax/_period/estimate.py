@@ -7,9 +7,11 @@ state) as a time shift along the orbit and an
 energy error, which moves the end of the leg by its leverage $\int ds/\dot q^2$ over
 the rest of it (Gauss–Legendre on the step's velocity polynomial); and the far
 turning point's band times $d\tau/dE$, the finite part of that integral from rest.
-Lanes it cannot vouch for, and every other method and stepper, are solved a second
-time at `TIGHTER` times the tolerances (`second_solve_estimate`; "half" by
-"matched").
+Lanes it cannot vouch for are solved a second time at `TIGHTER` times the
+tolerances from the far turning point moved across its band; every other method and
+stepper a second time at `TIGHTER` times the tolerances ("half", and "full" where L
+is even in q̇, by "matched") and, where a leg starts at the far turning point, a
+third from it moved across its band (`second_solve_estimate`).
 """
 
 import functools
@@ -25,15 +27,16 @@ from .._stepper.base import horner
 from .._taylor.stepper import TaylorStepper
 
 
-# The second solve: at `TIGHTER` times the tolerances (for "matched", from the far
-# turning point moved across its rounding band; for "half", by "matched"), nearer
-# the truth than the first by about that factor, so the difference is about the
-# first solve's error: `_SAFETY` times it, plus a fraction of rtol (`_FLOOR_RTOL`,
-# per stepper: a lane whose error happens to cancel at one tolerance and not at the
-# other, where the two solves agree more closely than either agrees with the truth;
-# more often with the few long steps of a Taylor step, and where the many short
-# steps of a pair of low order leave rounding errors of the same size in both
-# solves), plus `_FLOOR_ULPS` ulps. Calibrated on exact periods
+# The second solve: at `TIGHTER` times the tolerances ("half", "full": by
+# "matched"), nearer the truth than the first by about that factor, so the
+# difference is about the first solve's error; the band's share, from the far
+# turning point moved across its rounding band, is a term of its own (in one solve
+# with the truncation's, the two may cancel): `_SAFETY` times their sum, plus a
+# fraction of rtol (`_FLOOR_RTOL`, per stepper: a lane whose error happens to cancel
+# at one tolerance and not at the other, where the two solves agree more closely
+# than either agrees with the truth; more often with the few long steps of a Taylor
+# step, and where the many short steps of a pair of low order leave rounding errors
+# of the same size in both solves), plus `_FLOOR_ULPS` ulps. Calibrated on exact periods
 # (benchmarks/accuracy.py --periods, tests/test_estimate.py).
 TIGHTER = 0.1
 _SAFETY = 4.0
@@ -200,12 +203,17 @@ def needs_second_solve(status, bound, rtols):
     return (status == SUCCESS) & ~(bound <= PROMISE * rtols)
 
 
-def second_solve_estimate(T, status, T2, status2, rtols, stepper):
+def second_solve_estimate(T, status, T2, status2, rtols, stepper, shifted=None):
     """The estimate from a second solve at `TIGHTER` times the tolerances:
     `_SAFETY` times the relative difference, plus a fraction of rtol (`_FLOOR_RTOL`
     for `stepper`: a Taylor step, a Runge–Kutta pair, one of low order) and
     `_FLOOR_ULPS` ulps; infinite where the second solve failed and
-    the requested one did not (that says nothing sure)."""
+    the requested one did not (that says nothing sure).
+
+    `shifted`: `(T3, status3, T_ref, status_ref)`, a solve from the far turning
+    point moved across its rounding band and the one it differs from only by that;
+    `_SAFETY` times their relative difference is added (infinite where the shifted
+    one failed and the other did not)."""
     eps = jnp.finfo(T.dtype).eps
     if isinstance(stepper, TaylorStepper):
         kind = "taylor"
@@ -213,6 +221,13 @@ def second_solve_estimate(T, status, T2, status2, rtols, stepper):
         kind = "low_order"
     else:
         kind = "runge_kutta"
-    est = _SAFETY * jnp.abs(T2 - T) / jnp.abs(T) + _FLOOR_RTOL[kind] * rtols
+    diff = jnp.abs(T2 - T)
+    unsure = (status == SUCCESS) & (status2 != SUCCESS)
+    if shifted is not None:
+        T3, status3, T_ref, status_ref = shifted
+        moved = jnp.abs(T3 - T_ref)
+        diff = diff + jnp.where(status_ref == SUCCESS, moved, 0.0)
+        unsure = unsure | ((status_ref == SUCCESS) & (status3 != SUCCESS))
+    est = _SAFETY * diff / jnp.abs(T) + _FLOOR_RTOL[kind] * rtols
     est = est + _FLOOR_ULPS * eps
-    return jnp.where((status == SUCCESS) & (status2 != SUCCESS), jnp.inf, est)
+    return jnp.where(unsure, jnp.inf, est)

@@ -9,7 +9,6 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._stepper.base import fused
 from .events import Search
-from .outcome import start_next_leg
 
 
 class LaneConstants(eqx.Module):
@@ -55,7 +54,6 @@ class Lane(eqx.Module):
     done: Bool[Array, " lanes"]
     raw: Int[Array, " lanes"]  # its outcome so far (`outcome.py`)
     sigma: Float[Array, " lanes"]  # the sign of its event function during the leg
-    leg: Int[Array, " lanes"]
     s: Float[Array, " lanes"]  # time, position, velocity, acceleration, lane units
     x: Float[Array, " lanes"]
     v: Float[Array, " lanes"]
@@ -96,9 +94,8 @@ def advance(lane: Lane, step, found, h_next, active) -> NewState:
     return NewState(moved, s_new, x_new, v_new, a_new, h_new, hsave, steps)
 
 
-def next_lane(lane: Lane, event, step, g1, found, new: NewState, end, active) -> Lane:
+def next_lane(lane: Lane, step, g1, found, new: NewState, end, active) -> Lane:
     """The lanes after one iteration (`end`: their `Outcome`)."""
-    s, v, sigma = start_next_leg(event, step, g1, end.next_leg, new.s, new.v, new.a)
     lo, hi, glo, ghi = found.bracket
     old = lane.search
     return Lane(
@@ -106,11 +103,10 @@ def next_lane(lane: Lane, event, step, g1, found, new: NewState, end, active) ->
         idx=lane.idx,
         done=lane.done | end.ends,
         raw=end.raw,
-        sigma=sigma,
-        leg=lane.leg + end.next_leg.astype(jnp.int32),
-        s=s,
+        sigma=lane.sigma,
+        s=new.s,
         x=new.x,
-        v=v,
+        v=new.v,
         a=new.a,
         h=end.h,
         steps=new.steps,

@@ -32,12 +32,10 @@ from .units import lane_scales
 class Pass(eqx.Module):
     """Everything static about one pass of the loop over the queue.
 
-    `legs`: legs per lane (2: through the turning point and back, for "full").
     `screen`: accumulate the sums of the first-order error bound (`estimate.py`).
     """
 
     stepper: AbstractStepper
-    legs: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
     screen: bool = eqx.field(static=True, default=False)
@@ -123,7 +121,7 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
         if cfg.screen:
             inc = step_increments(lane.sums, terms, step, lane.v)
         end = lane_outcome(lane, c, found, new, h_next, active, cfg, dtmin)
-        lane = next_lane(lane, event, step, g1, found, new, end, active)
+        lane = next_lane(lane, step, g1, found, new, end, active)
         # (`moved` from the same fusion: outside it, the sums' fusion recomputes it.)
         lane, *moved = fuse_lanes(lane, *([new.moved] if cfg.screen else []))
         if cfg.screen:

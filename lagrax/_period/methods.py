@@ -1,6 +1,7 @@
-"""The period methods as passes of the kernel: "half", "quarter" and "full" in one
-pass, "matched" in two legs (and, with the first-order error bound, a second round
-for the lanes it cannot vouch for)."""
+"""The period methods as passes of the kernel, one leg per pass: "half" and
+"quarter" in one, "full" and "matched" in two (with the error estimate, its solves
+in the same passes; with the first-order error bound, a second round for the lanes
+it cannot vouch for)."""
 
 import dataclasses
 from collections.abc import Callable
@@ -42,7 +43,7 @@ class Method(eqx.Module):
     @property
     def pass_(self):
         # (One leg per pass: "full" returns in a second pass, `_swing`.)
-        return Pass(self.stepper, 1, self.width, self.max_steps, self.screened)
+        return Pass(self.stepper, self.width, self.max_steps, self.screened)
 
     @property
     def screened(self):
@@ -81,6 +82,32 @@ class LegA(eqx.Module):
     found: Bool[Array, " n"]
     go: Bool[Array, " n"]
     band: Float[Array, " n"]
+
+
+class Reference(eqx.Module):
+    """The error estimate's solves, run in the passes of the requested one, per lane:
+    whether the lane is the reference of "half" or "full" (`ref`: solved by
+    "matched"), how many rounding bands its far turning point moves (`shift`), and
+    the lane whose first leg it continues (`source`: itself, or another lane's, whose
+    first leg it does not run again: such lanes come last, and run only the second
+    pass)."""
+
+    ref: Bool[Array, " n"]
+    shift: Float[Array, " n"]
+    source: Int[Array, " n"]
+
+    @property
+    def first(self):
+        """The lanes that run their own first leg."""
+        return self.source == jnp.arange(self.source.shape[0])
+
+
+def _continued(res: PassResult, source) -> PassResult:
+    """Each lane's first-leg result from the lane `source` names (a lane that
+    continues another's first leg took none of its steps)."""
+    own = source == jnp.arange(source.shape[0])
+    res = jax.tree.map(lambda x: x[source] if jnp.ndim(x) == 1 else x, res)
+    return dataclasses.replace(res, steps=jnp.where(own, res.steps, 0))
 
 
 def _kinds(q0, kind):
@@ -169,29 +196,31 @@ class _Solve(eqx.Module):
 
 
 def run_method(
-    L, m, q0, consts, rtols, atols, t_max, energy_tol, shift, screened=False
+    L, m, q0, consts, rtols, atols, t_max, energy_tol, screened=False, second=None
 ) -> MethodResult:
-    """One solve of every lane by `m.method` (per-lane tolerances). `shift`: for
-    "matched", how many rounding bands to move each far turning point.
+    """One solve of every lane by `m.method` (per-lane tolerances).
 
-    `screened` ("matched" with a Taylor step and the error estimate): the first-order
-    error bound of each lane (`estimate.screen`), and a second solve, at `TIGHTER`
-    times the tolerances from the far turning point moved across its band, of only
-    the lanes that bound cannot vouch for, in the same loop."""
+    `second` (a `Reference`): the error estimate's solves among the lanes, for
+    "matched", "half" and "full". `screened` ("matched" or "quarter" with a Taylor
+    step and the error estimate): the first-order error bound of each lane
+    (`estimate.screen`), and a second solve, at `TIGHTER` times the tolerances from
+    the far turning point moved across its band, of only the lanes that bound cannot
+    vouch for, in the same loop."""
     zeros = jnp.zeros_like(q0)
     live = jnp.ones(q0.shape, bool)
     solve = _Solve(L, m, consts, t_max, energy_tol)
     if m.method == "quarter" and screened:
         lanes0 = Lanes(q0, zeros, _kinds(q0, MAX_SPEED), rtols, atols, live)
         return _quarter_screened(solve, lanes0, rtols)
-    reference = m.estimate and jnp.ndim(shift) == 1
-    if m.method == "full" or (m.method == "half" and reference):
-        return _swing(solve, q0, rtols, atols, shift if reference else None)
+    if m.method in ("full", "half") and (m.method == "full" or second is not None):
+        return _swing(solve, q0, rtols, atols, second)
     if m.method != "matched":
         return _one_pass(solve, q0, zeros, rtols, atols, live)
+    if second is not None:
+        live = second.first
     lanes0 = Lanes(q0, zeros, _kinds(q0, MAX_SPEED), rtols, atols, live)
     if not screened:
-        return _matched(solve, lanes0, shift, rtols)
+        return _matched(solve, lanes0, rtols, second)
     return _matched_screened(solve, lanes0, rtols, atols)
 
 
@@ -225,23 +254,29 @@ def _blank(tree):
     return jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), tree)
 
 
-def _matched(solve: _Solve, lanes0: Lanes, shift, rtols) -> MethodResult:
+def _matched(solve: _Solve, lanes0: Lanes, rtols, second=None) -> MethodResult:
     """Two quarter legs, each from rest at its own turning point, meeting at the
     point of maximum speed: nothing is integrated through the bottom of the swing.
+    With `second` (a `Reference`), its lanes' far turning points moved by their
+    `shift`, and the lanes that continue another's first leg run only the second.
 
     Both legs run through ONE instance of the kernel: a while loop over the passes
     whose body is the pass (its trip count is not a constant XLA can see, so it is
     not unrolled). Two calls of the pass would put two copies of the kernel in the
     program: everything but its identical fusions compiled twice, and the
     forward-mode derivative's tangent kernels twice."""
-    res_a, aux, res_b = _two_legs(solve, lanes0, shift, rtols)
+    if second is None:
+        leg_b = lambda r, l: solve.leg_b(r, l, 0.0)
+        res_a, aux, res_b = _two_passes(solve, lanes0, leg_b, rtols)
+    else:
+        every = lambda l: dataclasses.replace(l, live=jnp.ones_like(l.live))
+        leg_b = lambda r, l: solve.leg_b(
+            _continued(r, second.source), every(l), second.shift
+        )
+        res_a, aux, res_b = _two_passes(solve, lanes0, leg_b, rtols)
+        res_a = _continued(res_a, second.source)
     out = solve.combine(res_a, res_b, aux, rtols)
     return MethodResult(out.periods, out.status, out.steps, out.executed, out.q_far)
-
-
-def _two_legs(solve: _Solve, lanes0: Lanes, shift, rtols):
-    """The two legs of "matched": `(res_a, LegA, res_b)`."""
-    return _two_passes(solve, lanes0, lambda r, l: solve.leg_b(r, l, shift), rtols)
 
 
 def _two_passes(solve: _Solve, lanes0: Lanes, second, rtols):
@@ -293,11 +328,11 @@ def _even_in_qdot(L, consts, q0):
     return jax.vmap(one)(jax.lax.stop_gradient(q0))
 
 
-def _swing(solve: _Solve, q0, rtols, atols, shift) -> MethodResult:
+def _swing(solve: _Solve, q0, rtols, atols, second) -> MethodResult:
     """ "half", and "full" (its return leg in a second pass, from rest at the
-    turning point the first found), with the estimate's second solve (the lanes
-    where `shift`, if given, is not zero) by "matched" where it applies ("full":
-    where L is even in q̇; elsewhere "full" again).
+    turning point the first found), with the estimate's solves (`second`, a
+    `Reference`) by "matched" where it applies ("full": where L is even in q̇;
+    elsewhere "full" again).
 
     Through the bottom of the swing these methods lose to the energy errors their
     steps make, amplified near a hump, by an amount that does not scale with the
@@ -308,23 +343,28 @@ def _swing(solve: _Solve, q0, rtols, atols, shift) -> MethodResult:
     and the reference's second leg."""
     full = solve.m.method == "full"
     zeros = jnp.zeros_like(q0)
-    live = jnp.ones(q0.shape, bool)
-    ref = jnp.zeros(q0.shape, bool) if shift is None else shift != 0
+    if second is None:
+        ref, first = jnp.zeros(q0.shape, bool), jnp.ones(q0.shape, bool)
+        source = jnp.arange(q0.shape[0])
+    else:
+        ref, first, source = second.ref, second.first, second.source
     if full:
         ref = ref & _even_in_qdot(solve.L, solve.consts, q0)
     kinds = jnp.where(ref, MAX_SPEED, TURNING).astype(jnp.int32)
-    lanes0 = Lanes(q0, zeros, kinds, rtols, atols, live)
+    lanes0 = Lanes(q0, zeros, kinds, rtols, atols, first)
 
-    def second(res, lanes):
-        if shift is None:
+    def next_pass(res, lanes):
+        lanes = dataclasses.replace(lanes, live=jnp.ones_like(lanes.live))
+        if second is None:
             lanes_m, aux = lanes, None
         else:
-            lanes_m, aux = solve.leg_b(res, lanes, shift, only=ref)
+            res_m = _continued(res, source)
+            lanes_m, aux = solve.leg_b(res_m, lanes, second.shift, only=ref)
         if not full:
             return lanes_m, aux
         # The return leg from rest where the outgoing one ended (its state carries
         # the event's tangent).
-        back = ~ref & (res.status == SUCCESS)
+        back = ~ref & first & (res.status == SUCCESS)
         lanes = Lanes(
             jnp.where(ref, lanes_m.q0, jnp.where(back, res.q_end, jnp.nan)),
             jnp.where(ref, lanes_m.target, 0.0),
@@ -335,7 +375,7 @@ def _swing(solve: _Solve, q0, rtols, atols, shift) -> MethodResult:
         )
         return lanes, aux
 
-    res_a, aux, res_b = _two_passes(solve, lanes0, second, rtols)
+    res_a, aux, res_b = _two_passes(solve, lanes0, next_pass, rtols)
     if full:
         status = jnp.where(res_a.status == SUCCESS, res_b.status, res_a.status)
         T = jnp.where(status == SUCCESS, res_a.t_event + res_b.t_event, jnp.nan)
@@ -345,16 +385,27 @@ def _swing(solve: _Solve, q0, rtols, atols, shift) -> MethodResult:
     else:
         own = _one_pass_result(solve, q0, rtols, res_a)
     executed = res_a.executed + res_b.executed
-    if shift is None:
+    if second is None:
         return dataclasses.replace(own, executed=executed)
-    matched = solve.combine(res_a, res_b, aux, rtols)
+    matched = solve.combine(_continued(res_a, source), res_b, aux, rtols)
     pick = lambda x, y: jnp.where(ref, x, y)
-    return MethodResult(
+    out = MethodResult(
         pick(matched.periods, own.periods),
         pick(matched.status, own.status),
         pick(matched.steps, own.steps),
         executed,
         pick(matched.q_far, own.q_far),
+    )
+    # A lane continuing another's first leg without a reference to solve (no far
+    # turning point) repeats that lane's result (it took no steps).
+    again = ~first & ~ref
+    take = lambda x: jnp.where(again, x[source], x)
+    return MethodResult(
+        take(out.periods),
+        take(out.status),
+        jnp.where(again, 0, out.steps),
+        executed,
+        take(out.q_far),
     )
 
 

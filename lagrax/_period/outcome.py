@@ -1,7 +1,6 @@
 """How a lane's leg ends: the loop's raw outcomes, refined into statuses by `finish`."""
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
@@ -18,12 +17,10 @@ _ESCAPE = 1e6
 
 class Outcome(eqx.Module):
     """Per lane: its raw outcome so far, whether its amplitude ends in this iteration
-    (`ends`) or goes on to a second leg, and the next step length `h` kept within
-    the time limit."""
+    (`ends`), and the next step length `h` kept within the time limit."""
 
     raw: Int[Array, " lanes"]
     ends: Bool[Array, " lanes"]
-    next_leg: Bool[Array, " lanes"]
     h: Float[Array, " lanes"]
 
 
@@ -37,19 +34,12 @@ def lane_outcome(lane, c, found, new, h_next, active, cfg, dtmin) -> Outcome:
     h_new = jnp.minimum(h_new, jnp.maximum(c.limit - s_new, dtmin))
     collapsed = ~found.locating & ~moved & (h_next < dtmin)
     out_of_steps = steps >= cfg.max_steps
-    leg = lane.leg
-    if cfg.legs == 2:
-        next_leg = converged & (leg == 0)
-        finished = converged & (leg == 1)
-    else:
-        next_leg = jnp.zeros_like(converged)
-        finished = converged
     # Nested `where`s, not `jnp.select` (an argmax over the stacked conditions, a
     # reduction XLA recomputes the whole step into).
     raw = lane.raw
     for cond_, code in reversed(
         [
-            (finished, LOCATED),
+            (converged, LOCATED),
             (found.gave_up, LOCATE_FAILED),
             (escaped | ran_out, NO_EVENT),
             (collapsed, STEP_FAILED),
@@ -58,19 +48,6 @@ def lane_outcome(lane, c, found, new, h_next, active, cfg, dtmin) -> Outcome:
     ):
         raw = jnp.where(cond_, code, raw)
     ends = active & (
-        finished | found.gave_up | escaped | ran_out | collapsed | out_of_steps
+        converged | found.gave_up | escaped | ran_out | collapsed | out_of_steps
     )
-    return Outcome(raw, ends, next_leg, h_new)
-
-
-def start_next_leg(event, step, g1, next_leg, s, v, a):
-    """The second leg of "full" starts at rest at the turning point just found, at a
-    time that carries the implicit-function tangent of the event (zero primal).
-    Returns the lanes' `(s, v, sigma)`."""
-    dg1 = event.slope(step.v, step.a)
-    corr = -g1 / jnp.where(dg1 != 0, dg1, 1.0)
-    corr = jnp.where(jnp.isfinite(corr), corr, 0.0)
-    s = jnp.where(next_leg, s + (corr - jax.lax.stop_gradient(corr)), s)
-    sigma = jnp.where(next_leg, jnp.sign(a), event.sigma)
-    v = jnp.where(next_leg, 0.0, v)
-    return s, v, sigma
+    return Outcome(raw, ends, h_new)

@@ -88,7 +88,6 @@ class Queue(eqx.Module):
             done=~valid,
             raw=jnp.where(live & ~valid, INVALID, LOCATED).astype(jnp.int32),
             sigma=p[row["sigma"]],
-            leg=jnp.zeros_like(idx, jnp.int32),
             s=z,
             x=z,
             v=z,
