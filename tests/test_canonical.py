@@ -103,3 +103,119 @@ def test_a_global_changed_between_calls_is_seen(monkeypatch):
     fresh = pendulum.lagrangian(g=1.62)
     np.testing.assert_array_equal(t, lagrax.simulate(fresh, q0, v0, 0.0, 1.0).ys[0])
     assert not np.array_equal(s, t)
+
+
+def test_a_function_is_traced_once_while_what_it_reads_stays():
+    L = pendulum.lagrangian(g=2.0)
+    L1, c1 = canonical_lagrangian(L, f64)
+    L2, c2 = canonical_lagrangian(L, f64)
+    # The kept result: the same constant objects, no new trace.
+    assert L1 is L2 and all(a is b for a, b in zip(c1, c2, strict=True))
+    _, c3 = canonical_lagrangian(L, np.float32)
+    assert not any(a is b for a, b in zip(c1, c3))
+
+
+class _Holder:
+    strength = 1.0
+
+
+_HELPER_STRENGTH = 1.0
+
+
+def _helper(q):
+    return _HELPER_STRENGTH * jnp.cos(q[0])
+
+
+def _changed_reads():
+    """(L, change) pairs: `change()` changes something `L` reads."""
+    cases = {}
+
+    def closure_cell():
+        k = 1.0
+
+        def L(q, qd, t):
+            return 0.5 * qd[0] ** 2 - k * q[0] ** 2
+
+        def change():
+            nonlocal k
+            k = 3.0
+
+        return L, change
+
+    def helper_global():
+        def L(q, qd, t):
+            return 0.5 * qd[0] ** 2 + _helper(q)
+
+        def change():
+            globals()["_HELPER_STRENGTH"] = 2.5
+
+        return L, change
+
+    def array_in_place():
+        a = np.array([1.0, 2.0])
+
+        def L(q, qd, t):
+            return 0.5 * qd[0] ** 2 - a[1] * q[0] ** 2
+
+        def change():
+            a[1] = 7.0
+
+        return L, change
+
+    def default_list():
+        def L(q, qd, t, p=[1.0]):  # noqa: B006 -- the mutable default is the case
+            return 0.5 * qd[0] ** 2 - p[0] * q[0] ** 2
+
+        def change():
+            L.__defaults__[0][0] = 4.0
+
+        return L, change
+
+    def signed_zero():
+        z = 0.0
+
+        def L(q, qd, t):
+            return 0.5 * qd[0] ** 2 + jnp.arctan2(z, -1.0 - q[0] ** 2)
+
+        def change():
+            nonlocal z
+            z = -0.0
+
+        return L, change
+
+    def object_attribute():
+        h = _Holder()
+
+        def L(q, qd, t):
+            return 0.5 * qd[0] ** 2 - h.strength * q[0] ** 2
+
+        def change():
+            h.strength = 6.0
+
+        return L, change
+
+    for make in (
+        closure_cell,
+        helper_global,
+        array_in_place,
+        default_list,
+        signed_zero,
+        object_attribute,
+    ):
+        cases[make.__name__] = make
+    return cases
+
+
+def test_every_changed_read_is_seen(monkeypatch):
+    monkeypatch.setitem(globals(), "_HELPER_STRENGTH", 1.0)
+    q, qd = np.array([0.7]), np.array([-0.3])
+    for name, make in _changed_reads().items():
+        L, change = make()
+        L_c, c = canonical_lagrangian(L, f64)
+        before = float(L_c(q, qd, z0, *c))
+        assert before == float(L(q, qd, z0)), name
+        canonical_lagrangian(L, f64)  # kept, if it can be
+        change()
+        L_c, c = canonical_lagrangian(L, f64)
+        after = float(L_c(q, qd, z0, *c))
+        assert after == float(L(q, qd, z0)) and after != before, name

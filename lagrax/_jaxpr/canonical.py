@@ -24,9 +24,24 @@ its parameters and take part in the comparison, so such a Lagrangian hits the ca
 only with equal values there. Parameters whose equality is object identity (the
 rule of a `custom_jvp` defined inside the closure) make a new closure a new key:
 a missed reuse, never a wrong one.
+
+Tracing `L` costs a fraction of a millisecond, a tenth of a small sweep, so the result
+is kept per function object with a fingerprint of everything the function reads from
+outside its arguments: its code and defaults, its closure cells and the globals (and
+builtins) its code names, recursively through the plain Python functions among them;
+numbers by value, NumPy arrays by their bytes, containers by their contents, JAX
+arrays and library modules and functions by identity (a `jax.jit` function is traced
+once by JAX itself, which ignores later changes of the globals it reads). A call whose
+fingerprint differs traces again. Where a read cannot be fingerprinted (an object with
+attributes, a user module, a tracer of an enclosing transformation, a callable object,
+a large array), `L` is traced at every call.
 """
 
+import builtins
 import collections
+import functools
+import types
+import weakref
 from collections.abc import Callable
 
 import equinox as eqx
@@ -112,9 +127,18 @@ def canonical_lagrangian(
     constants, which are `consts` (module docstring). The float array fields of a
     pytree `L` (an `eqx.Module`) come first in `consts`."""
     dtype = np.dtype(dtype)
-    # Traced at every call (a fraction of a millisecond), not memoized per function
-    # object: `L` may read a global or a closure cell that changed since its last
-    # call, which a memoized `consts` would miss silently.
+    # `L` may read a global or a closure cell that changed since its last call, which
+    # a result kept per function object would miss silently: kept with a fingerprint
+    # of those reads, and only where one can be taken (module docstring).
+    reads = _reads(L)
+    key = (dtype, n, bool(jax.config.jax_enable_x64))
+    if reads is not None:
+        try:
+            kept = _KEPT.get(L, {}).get(key)
+        except TypeError:  # not weakly referable or not hashable
+            kept, reads = None, None
+        if kept is not None and kept[0] == reads:
+            return kept[1], list(kept[2])
     dynamic, static = eqx.partition(L, eqx.is_inexact_array)
     arrays, treedef = jax.tree.flatten(dynamic)
     f = _WithParameters(static, treedef) if arrays else L
@@ -125,7 +149,132 @@ def canonical_lagrangian(
     canon, lifted_values, kept_consts = _canonical(closed, len(arrays))
     canon = _intern(canon)
     consts = list(arrays) + lifted_values + kept_consts
+    if reads is not None and not any(isinstance(c, jax.core.Tracer) for c in consts):
+        _KEPT.setdefault(L, {})[key] = (reads, canon, tuple(consts))
     return canon, consts
+
+
+# Per function object (dropped with it): {(dtype, n, x64): (reads, canon, consts)}.
+_KEPT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+# Modules whose attributes are the library code a Lagrangian calls, not its data.
+_LIBRARIES = frozenset(
+    {"jax", "jaxlib", "numpy", "math", "cmath", "builtins", "operator", "functools"}
+    | {"equinox", "diffrax", "lagrax"}
+)
+_OPAQUE_CALLABLES = (
+    types.BuiltinFunctionType,
+    np.ufunc,
+    type(jax.jit(abs)),  # a jitted function: JAX keeps its trace per object
+)
+_MAX_BYTES = 1 << 16
+_MAX_DEPTH = 16
+
+
+class _Unreadable(Exception):
+    """A read that cannot be fingerprinted: trace at every call."""
+
+
+def _reads(f):
+    """A fingerprint of what `f` reads besides its arguments (module docstring), or
+    `None` where it cannot be taken."""
+    if not isinstance(f, (types.FunctionType, functools.partial)):
+        return None
+    out = []
+    try:
+        _walk(f, out, set(), 0)
+    except _Unreadable:
+        return None
+    return tuple(out)
+
+
+def _library(obj) -> bool:
+    name = getattr(obj, "__module__", None) or getattr(obj, "__name__", "")
+    return isinstance(name, str) and name.partition(".")[0] in _LIBRARIES
+
+
+def _walk(v, out, seen, depth):
+    if depth > _MAX_DEPTH:
+        raise _Unreadable
+    t = type(v)
+    if t in (bool, int, str, bytes, type(None)):
+        out.append((t, v))
+    elif t is float:
+        out.append((t, v.hex()))
+    elif t is complex:
+        out.append((t, v.real.hex(), v.imag.hex()))
+    elif isinstance(v, (np.ndarray, np.generic)):
+        a = np.asarray(v)
+        if a.dtype.hasobject or a.nbytes > _MAX_BYTES:
+            raise _Unreadable
+        out.append((np.ndarray, a.dtype, a.shape, a.tobytes()))
+    elif isinstance(v, jax.core.Tracer):
+        raise _Unreadable
+    elif isinstance(v, jax.Array):
+        out.append(_Identity(v))
+    elif t in (tuple, list):
+        out.append((t, len(v)))
+        for x in v:
+            _walk(x, out, seen, depth + 1)
+    elif t is dict:
+        out.append((t, len(v)))
+        for k, x in v.items():
+            _walk(k, out, seen, depth + 1)
+            _walk(x, out, seen, depth + 1)
+    elif t is types.ModuleType:
+        if not _library(v):
+            raise _Unreadable
+        out.append(_Identity(v))
+    elif t is types.FunctionType:
+        # Weakly: the fingerprint is kept beside a weak reference to `L` itself.
+        out.append(weakref.ref(v))
+        # A library's functions are code, not data, but lagrax's closures hold what a
+        # user passed them (parameters, functions): their cells are read.
+        library = _library(v)
+        if (library and not v.__module__.startswith("lagrax")) or id(v) in seen:
+            return
+        seen.add(id(v))
+        code = v.__code__
+        out.append(_Identity(code))
+        _walk(v.__defaults__, out, seen, depth + 1)
+        _walk(v.__kwdefaults__, out, seen, depth + 1)
+        for cell in v.__closure__ or ():
+            try:
+                x = cell.cell_contents
+            except ValueError:  # a cell not yet filled
+                out.append(("empty",))
+            else:
+                _walk(x, out, seen, depth + 1)
+        if library:
+            return
+        space, spare = v.__globals__, vars(builtins)
+        for name in _global_names(code):
+            if name in space:
+                out.append(name)
+                _walk(space[name], out, seen, depth + 1)
+            elif name in spare:
+                out.append((name, _Identity(spare[name])))
+            else:
+                out.append((name, "absent"))
+    elif t is functools.partial:
+        _walk(v.func, out, seen, depth + 1)
+        _walk(v.args, out, seen, depth + 1)
+        _walk(v.keywords, out, seen, depth + 1)
+    elif isinstance(v, _OPAQUE_CALLABLES) or (isinstance(v, type) and _library(v)):
+        out.append(_Identity(v))
+    else:
+        raise _Unreadable
+
+
+@functools.lru_cache(maxsize=1024)
+def _global_names(code) -> tuple:
+    """The names `code` and the functions defined in it look up (globals, builtins
+    and attribute names alike: an attribute name read as a global costs nothing)."""
+    names = list(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, types.CodeType):
+            names.extend(_global_names(c))
+    return tuple(dict.fromkeys(names))
 
 
 class BoundLagrangian(eqx.Module):
