@@ -185,6 +185,34 @@ def test_the_compact_program_runs_once_at_hand_or_for_a_second_new_lagrangian(
     call = compact_call(3.0)
     executables._LOADED[executables._key(call.static, call.args)] = None
     assert call.ready() and call.run("sweep", lambda: "specialized") is q0
+    # A caller with several new Lagrangians (the command line): compact at once.
+    executables._LOADED.clear()
+    tier.several_lagrangians()
+    assert compact_call(4.0).run("sweep", lambda: "specialized") is q0
+
+
+def test_a_call_that_compiles_is_not_the_compact_programs_time(monkeypatch, tmp_path):
+    # Else the first compact sweep, its compile included, would count as time spent
+    # on the compact program, and the next one would compile the specialized program.
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
+    for name, empty in (("_COMPILED", collections.Counter()), ("_NOTIFIED", set())):
+        monkeypatch.setattr(tier, name, empty)
+    monkeypatch.setattr(tier, "_SPENT", collections.Counter())
+    monkeypatch.setattr(tier, "_RATE", {})
+    monkeypatch.setattr(executables, "_LOADED", {})
+    monkeypatch.setattr(executables, "call", lambda *a: a[3])
+    L_c, consts = canonical_lagrangian(pendulum.lagrangian(g=1.1), jnp.float64)
+    taylor = TaylorStepper(order=20, max_step=np.inf)
+    q0 = np.linspace(0.1, 1.0, 8)
+    plan = tier.plan(L_c, consts, taylor, "config", 8, jnp.float64)
+    call = tier.Compact(plan, "jitted", ("static",), None, (q0,))
+    tier.several_lagrangians()
+    with pytest.warns(UserWarning, match="once per machine"):
+        call.run("sweep", lambda: "specialized")
+    assert not tier._SPENT and not tier._RATE
+    executables._LOADED[executables._key(call.static, call.args)] = None
+    call.run("sweep", lambda: "specialized")
+    assert sum(tier._SPENT.values()) > 0 and "sweep" in tier._RATE
 
 
 @pytest.fixture

@@ -141,6 +141,11 @@ def run_sweep(args):
 
     devices = setup_jax(args)
     targets = _targets.targets(args)
+    if len({id(t.L) for t in targets}) > 1:
+        from .._period import tier
+
+        # One compact program for every system, not a specialized compile each.
+        tier.several_lagrangians()
     writer = jax.process_index() == 0
     if args.distributed:
         # Only process 0 writes, so only its view of the paths counts; the others
