@@ -5,6 +5,8 @@ of the call itself, import excluded), and whether the cache kept its programs.
 
     python benchmarks/cache.py [--core 1] [CASE ...]
 
+(`--worker OUT.npz CASE`: one such process, the worker's run with its calls timed.)
+
 Writes `benchmarks/results/cache.json` (every case), or `cache_subset.json` where
 CASE names some: a partial run never overwrites the table of a full one.
 """
@@ -15,17 +17,17 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-WORKER = os.path.join(HERE, "..", "tests", "cache_worker.py")
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 import cache_worker  # noqa: E402
 
 
 def run(cache, out, case, core):
     env = dict(os.environ, LAGRAX_CACHE_DIR=cache)
-    cmd = [sys.executable, WORKER, out, case]
+    cmd = [sys.executable, os.path.abspath(__file__), "--worker", out, case]
     if core is not None:
         cmd = ["taskset", "-c", str(core), *cmd]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
@@ -35,7 +37,18 @@ def run(cache, out, case, core):
         return json.load(fh)[case]
 
 
+def timed(call):
+    """The worker's run: the call and its seconds (import excluded)."""
+    import jax
+
+    start = time.perf_counter()
+    result = jax.block_until_ready(call())
+    return result, {"seconds": time.perf_counter() - start}
+
+
 def main():
+    if sys.argv[1:2] == ["--worker"]:
+        return cache_worker.main(sys.argv[2], sys.argv[3:], run=timed)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("cases", nargs="*", default=cache_worker.CASES)
     p.add_argument("--core", type=int, default=None, help="pin to this core")

@@ -6,14 +6,14 @@ runs each case (a public call of the library that compiles a program the disk ca
 may keep) in this fresh process with the cache folder of `LAGRAX_CACHE_DIR`, and
 writes every array each case returned to `OUT.npz`, and to `OUT.json` what the cache
 did per case (`lagrax._cache.executables.STATS`: entries loaded, programs compiled,
-written, or refused by the cache) and its wall time. Run twice with one cache folder,
+written, or refused by the cache; `benchmarks/cache.py` adds the call's seconds through
+`main`'s `run`). Run twice with one cache folder,
 the second process loads what the first wrote: the test compares both outputs bit for
 bit (and a crash shows as the exit status).
 """
 
 import json
 import sys
-import time
 
 
 def _pendulum():
@@ -149,7 +149,9 @@ CASES = (
 ).split()
 
 
-def main(out, names):
+def main(out, names, run=None):
+    """`run(call) -> (result, extra)`: how each case is called, `extra` recorded
+    beside the cache's figures (default: the call alone)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -161,14 +163,15 @@ def main(out, names):
     arrays, record = {}, {}
     for name in names:
         before = dict(executables.STATS)
-        start = time.perf_counter()
-        result = jax.block_until_ready(cases[name]())
-        seconds = time.perf_counter() - start
+        if run is None:
+            result, extra = jax.block_until_ready(cases[name]()), {}
+        else:
+            result, extra = run(cases[name])
         for k, v in result.items():
             if v is not None:  # (a sweep without its estimate: None)
                 arrays[f"{name}/{k}"] = np.asarray(v)
         stats = {k: v - before.get(k, 0) for k, v in executables.STATS.items()}
-        record[name] = {"seconds": seconds, **stats}
+        record[name] = {**extra, **stats}
     np.savez(out, **arrays)
     with open(out.removesuffix(".npz") + ".json", "w") as fh:
         json.dump(record, fh, indent=1)
