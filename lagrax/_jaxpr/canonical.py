@@ -167,7 +167,9 @@ _OPAQUE_CALLABLES = (
     np.ufunc,
     type(jax.jit(abs)),  # a jitted function: JAX keeps its trace per object
 )
+# Beyond these a read is not fingerprinted (its walk would cost what a trace does).
 _MAX_BYTES = 1 << 16
+_MAX_ITEMS = 256
 _MAX_DEPTH = 16
 
 
@@ -212,6 +214,8 @@ def _walk(v, out, seen, depth):
         raise _Unreadable
     elif isinstance(v, jax.Array):
         out.append(_Identity(v))
+    elif t in (tuple, list, dict) and len(v) > _MAX_ITEMS:
+        raise _Unreadable
     elif t in (tuple, list):
         out.append((t, len(v)))
         for x in v:
