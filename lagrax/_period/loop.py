@@ -144,8 +144,8 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
     return queue.output(out), state.iterations * width, rel
 
 
-# The fields of `Lane` that the step reads, carried from one iteration to the next
-# as the consecutive pieces of one array.
+# The fields of `Lane` that a step reads, carried from one iteration to the next as
+# the consecutive pieces of one array.
 _STATE = ("s", "x", "v", "a", "h", "sigma")
 
 
@@ -158,8 +158,8 @@ def _pack_state(lane: Lane):
     input (or another output) it cannot prove apart, and above its limit
     (`-vectorize-memory-check-threshold`, 128) leaves the step's loop scalar,
     several times slower (see `Lane`). One buffer for the state the step reads is
-    one input instead of six: a margin under that limit for the inputs that depend
-    on the Lagrangian (what XLA computes from its constants). (Pieces of a flat
+    one input instead of one per field: a margin under that limit for the inputs
+    that depend on the Lagrangian (what XLA computes from its constants). (Pieces of a flat
     array, not the rows of a matrix: read through rows, a value of the step may be
     emitted as a function called from several places, which LLVM may keep as
     calls, and then vectorizes nothing.)"""
