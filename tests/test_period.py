@@ -272,3 +272,53 @@ def test_period_eager_and_jit():
     with pytest.raises(RuntimeError, match="not_oscillating"):
         lagrax.period(PENDULUM, 0.0)
     assert np.isnan(lagrax.period(PENDULUM, 0.0, throw=False))
+
+
+def test_loop_carries_the_state_the_step_reads_exactly():
+    """The loop carries the fields the Taylor step reads as one array between
+    iterations (one input of the step's fusion): every field comes back bit for
+    bit, signed zeros and non-finite values included, and the others untouched."""
+    from lagrax._period.events import Search
+    from lagrax._period.lane import Lane
+    from lagrax._period.loop import _pack_state, _unpack_state
+
+    W = 8
+    rng = np.random.default_rng(0)
+    special = np.array([-0.0, np.inf, -np.inf, np.nan])
+    count = iter(range(100))
+
+    def f():
+        col = rng.standard_normal(W) * 10.0 ** next(count)
+        col[rng.integers(W)] = special[next(count) % 4]
+        return jnp.asarray(col)
+
+    ints = lambda: jnp.asarray(rng.integers(-5, 5, W), jnp.int32)
+    bools = lambda: jnp.asarray(rng.integers(0, 2, W), bool)
+    search = Search(bools(), f(), f(), f(), f(), f(), f(), f(), ints())
+    lane = Lane(
+        p=jnp.asarray(rng.standard_normal((8, W))),
+        idx=ints(),
+        done=bools(),
+        raw=ints(),
+        sigma=f(),
+        s=f(),
+        x=f(),
+        v=f(),
+        a=f(),
+        h=f(),
+        steps=ints(),
+        search=search,
+        sums=jnp.asarray(rng.standard_normal((W, 5))),
+    )
+    packed = _pack_state(lane)
+    assert (
+        sum(np.ndim(y) > 0 and np.shape(y)[0] > W for y in jax.tree.leaves(packed)) == 1
+    )
+    back = _unpack_state(packed)
+    before, tree = jax.tree.flatten(lane)
+    after, tree_back = jax.tree.flatten(back)
+    assert tree == tree_back
+    for u, w in zip(before, after):
+        u, w = np.asarray(u), np.asarray(w)
+        assert u.dtype == w.dtype and u.shape == w.shape
+        assert np.array_equal(u.view(np.uint8), w.view(np.uint8))

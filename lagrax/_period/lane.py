@@ -40,13 +40,17 @@ class Lane(eqx.Module):
     """The state of every lane of the period loop.
 
     A lane carries its constants as ONE array `p` (a row per constant, lanes last),
-    not eight: one input of the Taylor step's fusion instead of eight. LLVM's loop
-    vectorizer needs a runtime alias check per (output, input) pair and per pair of
-    outputs of a fusion whose buffers it cannot prove apart, with a limit of 128
-    (`-vectorize-memory-check-threshold`); above it the step's loop stays scalar,
-    several times slower. The step with the error bound's sums reads 9 buffers and
-    writes 9 (117 checks): one more input costs 9. Watch the step fusion's operand
-    count (`--xla_dump_to`, `*after_optimizations.txt`) after changing the loop.
+    not eight: one input of the Taylor step's fusion instead of eight; between
+    iterations the loop carries the state the step reads as one array too
+    (`loop._pack_state`). LLVM's loop vectorizer needs a runtime alias check per
+    (output, input) pair and per pair of outputs of a fusion whose buffers it cannot
+    prove apart, with a limit of 128 (`-vectorize-memory-check-threshold`); above it
+    the step's loop stays scalar, several times slower. With the error bound's sums
+    the step writes 9 buffers: each input read inside its loop costs 9 checks, and
+    besides the lanes' own buffers XLA adds what it computes from L's constants
+    outside the step. Count the checks after changing the loop: the `found.conflict`
+    values in the step kernel's optimized LLVM IR (`--xla_dump_to`, with the
+    threshold raised by `--xla_backend_extra_options` so that they are emitted).
     """
 
     p: Float[Array, "params lanes"]

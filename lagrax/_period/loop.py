@@ -22,7 +22,7 @@ from .._stepper.base import AbstractStepper, LaneField
 from .._stepper.controller import IController
 from .estimate import step_increments, step_terms
 from .events import Event, locate_in_step, search
-from .lane import advance, fuse_lanes, LaneConstants, next_lane
+from .lane import advance, fuse_lanes, Lane, LaneConstants, next_lane
 from .outcome import lane_outcome
 from .quantities import mechanics
 from .queue import Queue
@@ -93,6 +93,7 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
 
     def body(carry):
         lane, out, state = carry
+        lane = _unpack_state(lane)
         c = LaneConstants.unpack(lane.p, kinds.dtype)
         active = ~lane.done
         event = Event(c.kind, lane.sigma, c.xt)
@@ -131,14 +132,46 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
         # --- lanes that are done hand in their result and take the next amplitude
         out = queue.hand_in(out, lane)
         lane, state = queue.refill(lane, state)
-        return lane, out, state
+        return _pack_state(lane), out, state
 
     def cond(carry):
         state = carry[2]
         return (state.busy > 0) | (state.iterations == 0)
 
-    lane, out, state = jax.lax.while_loop(cond, body, queue.empty(width))
+    lane, out, state = queue.empty(width)
+    init = (_pack_state(lane), out, state)
+    lane, out, state = jax.lax.while_loop(cond, body, init)
     return queue.output(out), state.iterations * width, rel
+
+
+# The fields of `Lane` that a step reads, carried from one iteration to the next as
+# the consecutive pieces of one array.
+_STATE = ("s", "x", "v", "a", "h", "sigma")
+
+
+def _pack_state(lane: Lane):
+    """`(lane, y)`: the lanes with the fields `_STATE` as the consecutive pieces of
+    `y` (of shape `(6 lanes,)`).
+
+    The step's fusion reads every carried buffer it uses, and writes its outputs;
+    LLVM's loop vectorizer needs a runtime alias check per pair of an output and an
+    input (or another output) it cannot prove apart, and above its limit
+    (`-vectorize-memory-check-threshold`, 128) leaves the step's loop scalar,
+    several times slower (see `Lane`). One buffer for the state the step reads is
+    one input instead of one per field: a margin under that limit for the inputs
+    that depend on the Lagrangian (what XLA computes from its constants). (Pieces of a flat
+    array, not the rows of a matrix: read through rows, a value of the step may be
+    emitted as a function called from several places, which LLVM may keep as
+    calls, and then vectorizes nothing.)"""
+    y = jnp.concatenate([getattr(lane, k) for k in _STATE])
+    return dataclasses.replace(lane, **{k: None for k in _STATE}), y
+
+
+def _unpack_state(packed) -> Lane:
+    lane, y = packed
+    W = y.shape[0] // len(_STATE)
+    fields = {k: y[i * W : (i + 1) * W] for i, k in enumerate(_STATE)}
+    return dataclasses.replace(lane, **fields)
 
 
 def _within(stepper, event, field, base, free, screen):
