@@ -287,3 +287,41 @@ def test_unrolled_matches_loop(accel):
         scale = np.max(np.abs(theirs), axis=1, keepdims=True)
         err = np.abs(ours - np.asarray(theirs)) / np.where(scale > 0, scale, 1.0)
         assert np.max(err) < 1e-13, np.max(err, axis=1)
+
+
+def test_the_step_leaves_its_loop_by_select_where_transcendentals_share_it():
+    # Two or more transcendental values feeding the recurrence: the stacked loop's
+    # branches each recompute them (up to a hundred times slower per step), so the
+    # period kernel's step takes the select; one or none: the stack.
+    import types
+
+    from lagrax._period.units import scaled_acceleration
+    from lagrax._taylor.program import transcendental_reads
+    from lagrax._taylor.stepper import TaylorStepper
+
+    def field(V):
+        a = scaled_acceleration(lambda q, qd, t: 0.5 * qd[0] ** 2 - V(q[0]), ())
+        accel = lambda s, x, v, p: a(*p, s, x, v)  # noqa: E731
+        return types.SimpleNamespace(scalar_accel=accel, params=[jnp.ones((4,))] * 3)
+
+    fields = {
+        "polynomial": field(lambda q: q**2 / 2 + q**4 / 10),
+        "pendulum": field(lambda q: -jnp.cos(q)),
+        "gaussian well": field(lambda q: -jnp.exp(-(q**2))),
+        "sin squared": field(lambda q: jnp.sin(q) ** 2 / 2),
+        "two exponentials": field(lambda q: jnp.exp(q) + jnp.exp(-q)),
+    }
+    counts = {
+        k: transcendental_reads(f.scalar_accel, jnp.float64, f.params)
+        for k, f in fields.items()
+    }
+    assert counts == {
+        "polynomial": 0,
+        "pendulum": 1,
+        "gaussian well": 1,
+        "sin squared": 2,
+        "two exponentials": 2,
+    }
+    step = TaylorStepper(order=20, max_step=2.0)
+    chosen = {k: step.fuses_by_select(f, jnp.float64) for k, f in fields.items()}
+    assert chosen == {k: n >= 2 for k, n in counts.items()}

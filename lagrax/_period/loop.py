@@ -159,9 +159,9 @@ def _pack_state(lane: Lane):
     (`-vectorize-memory-check-threshold`, 128) leaves the step's loop scalar,
     several times slower (see `Lane`). One buffer for the state the step reads is
     one input instead of one per field: a margin under that limit for the inputs
-    that depend on the Lagrangian (what XLA computes from its constants). (Pieces of a flat
-    array, not the rows of a matrix: read through rows, a value of the step may be
-    emitted as a function called from several places, which LLVM may keep as
+    that depend on the Lagrangian (what XLA computes from its constants). (Pieces of
+    a flat array, not the rows of a matrix: read through rows, a value of the step
+    may be emitted as a function called from several places, which LLVM may keep as
     calls, and then vectorizes nothing.)"""
     y = jnp.concatenate([getattr(lane, k) for k in _STATE])
     return dataclasses.replace(lane, **{k: None for k in _STATE}), y

@@ -17,6 +17,10 @@ class CompactTaylorStepper(TaylorStepper):
     """`TaylorStepper` reading the acceleration from a compact tape
     (`field.scalar_accel`: an object with `.tape` and `.params`)."""
 
+    def fuses_by_select(self, field, dtype) -> bool:
+        # (The compact program reads its tape: no transcendental of L's own.)
+        return self.branch_free
+
     def coefficients(self, field, s, x, v):
         accel = field.scalar_accel
         W = x.shape[0]

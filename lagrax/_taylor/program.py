@@ -245,6 +245,12 @@ class _Program:
                 return result
             base = self._mul([base, base], [aval], True)[0]
 
+    def transcendental_reads(self) -> int:
+        """How many outputs of transcendental series nodes (a sine–cosine pair counts
+        its two) other nodes read."""
+        outs = {o for n in self.nodes if n.kind in _TRANSCENDENTAL for o in n.outs}
+        return len({i for n in self.nodes for i in n.ins if i in outs})
+
     def _prune(self, outs=None):
         """Drops equations the output (or `outs`) does not depend on."""
         live = {self.out} if outs is None else set(outs)
@@ -254,6 +260,13 @@ class _Program:
                 kept.append(node)
                 live.update(node.ins)
         self.nodes = kept[::-1]
+
+
+# Series nodes whose value costs a libm call per lane (`transcendental_reads`).
+_TRANSCENDENTAL = frozenset(
+    {"sincos", "sinhcosh", "exp", "exp2", "expm1", "log", "log1p", "tan", "tanh"}
+    | {"atan", "logistic", "pow", "sqrt", "rsqrt", "cbrt"}
+)
 
 
 def _scalar(aval):
@@ -542,6 +555,27 @@ def _coefficients(prog, K, s, x, v, leaves, trig=False):
 # --- entry point --------------------------------------------------------------------
 
 
+def _traced(accel, dtype, leaves, treedef):
+    """`accel`'s closed jaxpr at scalar `s, x, v` and one lane of the per-lane
+    parameters `leaves` (lane axis first)."""
+
+    def flat(s, x, v, *leaves):
+        return accel(s, x, v, *treedef.unflatten(leaves))
+
+    scalar = jax.ShapeDtypeStruct((), dtype)
+    specs = [jax.ShapeDtypeStruct(jnp.shape(x)[1:], x.dtype) for x in leaves]
+    with fusion_off():  # (an identity for XLA; no recurrence rule for it)
+        return jax.make_jaxpr(flat)(scalar, scalar, scalar, *specs)
+
+
+def transcendental_reads(accel: Callable, dtype, p) -> int:
+    """`_Program.transcendental_reads` of `accel(s, x, v, p)` (as `taylor_coefficients`
+    calls it, `p` with a lane axis first): traced, nothing evaluated."""
+    leaves, treedef = jax.tree.flatten((p,))
+    closed = _traced(accel, jnp.dtype(dtype), leaves, treedef)
+    return _Program(closed, len(leaves)).transcendental_reads()
+
+
 # The straight-line program's size beyond which `unrolled=True` falls back to the loop
 # over orders: XLA duplicates the program into each fusion that consumes it, so its
 # compile time grows much faster than its size (the pendulum's order-20 program is
@@ -626,13 +660,7 @@ def taylor_coefficients(
                     f"axis first, of length {W}; got shape {leaf.shape}."
                 )
 
-        def flat(s, x, v, *leaves):
-            return accel(s, x, v, *treedef.unflatten(leaves))
-
-        scalar = jax.ShapeDtypeStruct((), dtype)
-        specs = [jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype) for leaf in leaves]
-        with fusion_off():  # (an identity for XLA; no recurrence rule for it)
-            closed = jax.make_jaxpr(flat)(scalar, scalar, scalar, *specs)
+        closed = _traced(accel, dtype, leaves, treedef)
         out = closed.out_avals
         if len(out) != 1 or out[0].shape != ():
             raise TypeError(

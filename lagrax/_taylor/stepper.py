@@ -27,7 +27,7 @@ from .._stepper.base import (
     TaylorExpansion,
     within_or_identity,
 )
-from .program import taylor_coefficients
+from .program import taylor_coefficients, transcendental_reads
 
 
 # The trajectories' step (`simulate_batch`, `Taylor` as a diffrax solver): the first
@@ -82,7 +82,8 @@ class TaylorStepper(AbstractStepper):
     truncation: float | None = eqx.field(static=True, default=None, kw_only=True)
 
     rejects: ClassVar[bool] = False
-    # How the step's outputs leave its one loop (`fused`): see `one_fusion`.
+    # How the step's outputs leave its one loop (`fused`): see `one_fusion` and
+    # `fuses_by_select`.
     branch_free: ClassVar[bool] = False
 
     @property
@@ -139,6 +140,18 @@ class TaylorStepper(AbstractStepper):
         """$2^x$ for the step length (a subclass may take a cheaper one)."""
         return jnp.exp2(x)
 
+    def fuses_by_select(self, field: LaneField, dtype) -> bool:
+        """Whether the step's outputs leave its loop by `one_fusion`'s select
+        (`branch_free`) rather than its stack. The stack keeps the cheapest loop
+        where at most one transcendental value (a sine, an exponential) feeds the
+        recurrence; where two or more do (`sin(q) cos(q)`, `exp(q) + exp(-q)`),
+        each branch of the stacked loop computes them again and LLVM no longer
+        merges the copies, up to a hundred times slower per step
+        (benchmarks/README.md)."""
+        if self.branch_free:
+            return True
+        return transcendental_reads(field.scalar_accel, dtype, field.params) >= 2
+
     def coefficients(self, field: LaneField, s, x, v):
         """`(xs, vs, as_)`: lists of per-lane coefficients about `(s, x, v)`."""
         coeffs = taylor_coefficients(
@@ -186,7 +199,12 @@ class TaylorStepper(AbstractStepper):
         # part (several times slower per lane-step). (No output more: each is a
         # branch of that loop, which may recompute what they share.)
         x1, v1, a1, h, extras = fused(
-            x_end, raw.v, raw.a, raw.h, raw.extras, branch_free=self.branch_free
+            x_end,
+            raw.v,
+            raw.a,
+            raw.h,
+            raw.extras,
+            branch_free=self.fuses_by_select(field, x.dtype),
         )
         # Chosen before it is taken: never rejected; a non-finite step fails.
         error = jnp.where(jnp.isfinite(h), 0.0, jnp.nan)
