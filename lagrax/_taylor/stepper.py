@@ -204,7 +204,7 @@ class TaylorStepper(AbstractStepper):
             raw.a,
             raw.h,
             raw.extras,
-            branch_free=self.fuses_by_select(field, x.dtype),
+            branch_free=self.fuses_by_select(field, jax.tree.leaves(x)[0].dtype),
         )
         # Chosen before it is taken: never rejected; a non-finite step fails.
         error = jnp.where(jnp.isfinite(h), 0.0, jnp.nan)
