@@ -578,10 +578,12 @@ def transcendental_reads(accel: Callable, dtype, p) -> int:
 
 # The straight-line program's size beyond which `unrolled=True` falls back to the loop
 # over orders: XLA duplicates the program into each fusion that consumes it, so its
-# compile time grows much faster than its size (the pendulum's order-20 program is
-# under a thousand equations; the θ-form cycloid's, over five thousand, does not
-# compile in reasonable time).
-_UNROLL_BUDGET = 2000
+# compile time grows much faster than its size. At order 20 with L's constants as
+# arguments: the pendulum's ~1,200 equations; two-term potentials (cos q + q^4,
+# q^2 + q^4 + q^6, cos q + cos 2q) ~2,000-2,150, which compile in seconds and step
+# several times faster than the fallback (benchmarks/README.md); a position-dependent
+# mass ~3,200 and the θ-form cycloid ~6,000 do not compile in reasonable time.
+_UNROLL_BUDGET = 2500
 
 
 def taylor_coefficients(
