@@ -323,7 +323,9 @@ def _run(cfg, q0, v0, t0, t1, rtol, atol, ts, source):
         x_new, v_new, p_new, idle = load(new_idx)
         x = jnp.where(finished[:, None], x_new, x)
         v = jnp.where(finished[:, None], v_new, v)
-        p = p.at[:, S0].set(t).at[:, S0_LO].set(t_lo).at[:, HMAX].set(hmax)
+        # (As `p` stores them: the float32 releases' times and caps are float32.)
+        t_p, t_lo_p, hmax_p = (jnp.asarray(a, p.dtype) for a in (t, t_lo, hmax))
+        p = p.at[:, S0].set(t_p).at[:, S0_LO].set(t_lo_p).at[:, HMAX].set(hmax_p)
         p = jnp.where(finished[:, None], p_new, p)
         zero = jnp.zeros_like(j)
         ints = jnp.stack(
