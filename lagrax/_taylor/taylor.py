@@ -182,7 +182,7 @@ class Taylor(AbstractTaylorSolver):
 
     def _unrolls(self, accel: Callable, dtype, *params) -> bool:
         """Whether the period kernel computes `accel`'s coefficients at this order as
-        one straight-line program (of at most ~2000 equations) rather than by the
+        one straight-line program (of at most ~2500 equations) rather than by the
         slower loop over orders (raises `NotImplementedError` for a primitive
         without a recurrence): `accel(s, x, v, *params)` with scalars `s, x, v` and
         `params` shape-dtype specs or arrays without a lane axis. Traced once,
