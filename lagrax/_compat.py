@@ -42,6 +42,41 @@ def prepare_lapack() -> bool:
     return True
 
 
+# ------------------------------------------------- XLA's threads within one program
+
+# XLA's CPU client sizes its thread pool for a program's own loops when it starts,
+# from this variable (else from the cores the process may use, at least one thread
+# per CPU device); a program compiled there has each large loop split into as many
+# parts, run in parallel (`outer_dimension_partitions` in its optimized HLO).
+_POOL_VARIABLES = ("PJRT_NPROC", "NPROC")
+
+
+def one_thread_environment() -> dict:
+    """The environment variables under which a new process's XLA CPU client keeps
+    every loop of a program on the thread that runs it (its pool of one thread).
+    Where a later XLA stops reading them, a program compiled there is split as in
+    any other process: only slower, as today."""
+    return {_POOL_VARIABLES[0]: "1"}
+
+
+def splits_loops() -> bool:
+    """Whether XLA may split a program's loops across threads in this process: it
+    may run on more than one core and no pool variable keeps it to one thread (the
+    pool holds at least one thread per CPU device)."""
+    import os
+
+    if jax.local_device_count() > 1:
+        return True
+    for name in _POOL_VARIABLES:
+        value = os.environ.get(name)
+        if value is not None and value.strip().isdigit():
+            return int(value) > 1
+    try:
+        return len(os.sched_getaffinity(0)) > 1
+    except (AttributeError, OSError):  # (no affinity here: the machine's count)
+        return (os.cpu_count() or 1) > 1
+
+
 # ------------------------------------------------------------ JAX's trace context
 
 

@@ -15,6 +15,12 @@ os.environ["LAGRAX_CACHE_DIR"] = ""
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="lagrax-tests-")
 atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], ignore_errors=True)
 
+# XLA's thread pool for a program's loops: one thread (as in a process on one core),
+# so that the programs the library compiles apart where XLA would split their loops
+# (`lagrax._cache.apart`) are compiled in the tests' processes; the tests of that
+# path start processes with a pool of two.
+os.environ.setdefault("PJRT_NPROC", "1")
+
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 

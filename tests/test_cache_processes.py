@@ -120,3 +120,52 @@ def test_the_command_line_runs_twice_on_one_cache(tmp_path):
 def test_the_default_job_runs_twice_on_one_cache(tmp_path):
     names = _cli_twice(tmp_path, "--count", "256")
     assert any(n.endswith(".bin") for n in names)
+
+
+# A program made by `executables.program`, in a process whose XLA splits loops
+# (`PJRT_NPROC=2`): compiled apart (loops whole), written, loaded by the next.
+_APART = """
+import json, sys
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from lagrax._cache import executables
+
+def fun(x, y):
+    return jax.lax.fori_loop(0, 3, lambda i, x: jnp.sin(x) * 1.0001 + y * x, x)
+
+options = {"xla_cpu_use_fusion_emitters": False}
+x, y = jnp.linspace(0.0, 1.0, 500_000), jnp.linspace(1.0, 0.0, 500_000)
+f = executables.program(fun, options)
+out = executables.call(f, "apart", jax.tree.structure(x), x, y)
+here = jax.jit(fun, compiler_options=options).lower(x, y).compile()
+((compiled, _),) = executables._LOADED.values()
+parts = [c.as_text().count("outer_dimension_partitions") for c in (here, compiled)]
+np.save(sys.argv[1], np.asarray(out))
+same = bool(np.array_equal(out, here(x, y)))
+print(json.dumps(dict(stats=dict(executables.STATS), parts=parts, same=same)))
+"""
+
+
+def test_a_program_compiled_apart_runs_twice_on_one_cache(tmp_path):
+    env = dict(os.environ, LAGRAX_CACHE_DIR=str(tmp_path / "cache"), PJRT_NPROC="2")
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    runs = []
+    for run in ("first", "second"):
+        proc = subprocess.run(
+            [sys.executable, "-c", _APART, str(tmp_path / f"{run}.npy")],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert proc.returncode == 0, f"{run} run:\n{proc.stderr[-4000:]}"
+        runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    first, second = runs
+    assert first["stats"] == {"compiled apart": 1, "written": 1}, first
+    assert second["stats"] == {"loaded": 1}, second
+    # Split where compiled in the process, whole where compiled apart.
+    assert first["parts"][0] >= 1 and first["parts"][1] == 0 and second["parts"][1] == 0
+    assert first["same"] and second["same"]
+    np.testing.assert_array_equal(
+        np.load(tmp_path / "first.npy"), np.load(tmp_path / "second.npy")
+    )

@@ -214,3 +214,30 @@ def test_diffeqsolve_hands_solvers_the_term_through_a_time_wrapper():
         assert int(sol.solver_state) == sign
         np.testing.assert_allclose(sol.ys, 0.5**2 if sign > 0 else 1.5**2)
     assert _compat.unwrap_time(term) == (term, 1)
+
+
+_SPLIT = """
+import jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+f = lambda x: jax.lax.fori_loop(0, 3, lambda i, x: jnp.sin(x) * 1.0001 + x, x)
+options = {"xla_cpu_use_fusion_emitters": False}
+x = jnp.ones(500_000)
+text = jax.jit(f, compiler_options=options).lower(x).compile().as_text()
+print(text.count("outer_dimension_partitions"))
+"""
+
+
+def test_one_thread_environment_keeps_a_programs_loops_whole():
+    """In a process started with `one_thread_environment`, XLA splits no loop
+    across threads; with a pool of two it splits this one. If the first fails, XLA
+    no longer reads the variable (the programs `lagrax._cache.apart` compiles are
+    split again: slower, not wrong)."""
+    counts = {}
+    for name, extra in (("one", _compat.one_thread_environment()), ("two", {})):
+        env = {**os.environ, "PJRT_NPROC": "2", **extra}
+        proc = subprocess.run(
+            [sys.executable, "-c", _SPLIT], env=env, capture_output=True, text=True
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        counts[name] = int(proc.stdout.split()[-1])
+    assert counts["one"] == 0 and counts["two"] >= 1, counts

@@ -257,3 +257,23 @@ def test_jaxs_compilation_cache_on_nothing_is_written(tmp_path):
     )
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.split() == ["0", "True", "True", "True", "0", "True"]
+
+
+def test_a_program_the_worker_cannot_compile_is_compiled_here(
+    monkeypatch, tmp_path, without_jax_cache
+):
+    """Where compiling apart fails (here: no worker to start), the program is
+    compiled in the process, written and run as before."""
+    from lagrax._cache import apart
+
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(executables, "_LOADED", {})
+    monkeypatch.setattr(executables, "STATS", collections.Counter())
+    monkeypatch.setattr(apart, "wanted", lambda: True)
+    monkeypatch.setattr(apart, "_WORKER", str(tmp_path / "missing.py"))
+    f = executables.program(lambda x, y: jnp.sin(x) * y)
+    x, y = jnp.linspace(0.0, 1.0, 5), jnp.float64(2.0)
+    out = executables.call(f, "sin, here", jax.tree.structure(x), x, y)
+    assert dict(executables.STATS) == {"compiled": 1, "written": 1}
+    assert len(_files(tmp_path)) == 1
+    np.testing.assert_allclose(out, 2.0 * np.sin(np.linspace(0.0, 1.0, 5)))

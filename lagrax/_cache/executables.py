@@ -4,10 +4,12 @@ compile them again.
 Two kinds of entry, each compiled once, serialized (`jax.experimental.
 serialize_executable`) and loaded in a fraction of a second after:
 
-- `call`: programs that do not depend on the Lagrangian (the tape path,
+- `call`: programs that do not depend on the Lagrangian (the compact tier,
     `lagrax._period.tier`), keyed on the library's source, the static configuration
     and the arguments' shapes, without tracing anything: one executable serves every
-    Lagrangian (entries `t*.bin`).
+    Lagrangian (entries `t*.bin`). Where XLA would split their loops across threads
+    in this process, they are compiled in a process of their own that keeps them
+    whole (`lagrax._cache.apart`).
 - `cached_call`: any compiled program of an eager call (the period sweep, the
     batched trajectories), keyed on the text of the lowered program itself (which
     holds everything it computes: a rebuilt Lagrangian with new parameter values that
@@ -79,13 +81,14 @@ import os
 import pickle
 import re
 import sys
+import weakref
 
 import jax
 import numpy as np
 from jax.experimental import serialize_executable
 
 from .. import _compat
-from . import faithful, folder as _folder
+from . import apart, faithful, folder as _folder
 
 
 # Compiled programs of this process: by key (`call`), and by program and argument
@@ -163,23 +166,63 @@ def _key(static, args) -> str:
     return "t" + hashlib.sha256(text.encode()).hexdigest()
 
 
+# The plain function and compile options of each program made by `program`.
+_PLAIN: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def program(fun, options=None):
+    """`jax.jit(fun, compiler_options=options)`, for `call`: where XLA would split
+    its loops across threads in this process, `call` compiles it in a process of its
+    own that does not (`lagrax._cache.apart`), from `fun` itself (a jitted function
+    with compile options cannot be called inside another). (`cached_call`'s
+    programs, compiled once per Lagrangian, are compiled here: apart, a first call
+    would take a second longer.)"""
+    jitted = jax.jit(fun, compiler_options=options)
+    _PLAIN[jitted] = (fun, dict(options or {}))
+    return jitted
+
+
 def call(jitted, static, out_tree, *args):
     """`jitted(*args)` through an executable compiled once per machine: from this
     process's table, else from disk, else compiled (and written to disk).
     `static`: what besides the arguments' shapes determines the program (its
     `repr` must say it all); `out_tree`: the structure of its outputs (a pytree
-    definition does not survive pickling: an `equinox.Module`'s holds sentinels)."""
+    definition does not survive pickling: an `equinox.Module`'s holds sentinels).
+    A `jitted` made by `program` is compiled apart where that pays (`program`)."""
     if not applies():
         return jitted(*args)
     key = _key(static, args)
     if key not in _LOADED:
         in_tree = jax.tree.structure((args, {}))
         compiled = _load(key, in_tree, out_tree)
+        if compiled is None:
+            compiled = _compile_apart(key, jitted, args, in_tree, out_tree)
         if compiled is not None:
-            _LOADED[key] = (compiled, key)
+            _LOADED[key] = (compiled, key)  # (its first run is checked: `_run`)
         else:
             _LOADED[key] = (_compile(key, jitted.lower(*args)), None)
     return _run(_LOADED, key, args, lambda: _compile(key, jitted.lower(*args)))
+
+
+def _compile_apart(key, jitted, args, in_tree, out_tree):
+    """`jitted(*args)` compiled in a process of its own (`apart`), loaded here and
+    written under `key` where it is known to load safely; None where this process
+    compiles it (`jitted` not made by `program`, XLA keeps its loops whole here,
+    JAX's persistent cache is in use, or the worker failed)."""
+    plain = _PLAIN.get(jitted)
+    if plain is None or _jax_cache_in_use() or not apart.wanted():
+        return None
+    payload = apart.compile_apart(*plain, args)
+    if payload is None:
+        return None
+    try:
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    except Exception:  # noqa: BLE001 -- compiled here instead
+        return None
+    STATS["compiled apart"] += 1
+    if _path(key) is not None:
+        _write(key, payload, _kernels(compiled))
+    return compiled
 
 
 def call_available(static, *args) -> bool:
@@ -526,12 +569,15 @@ def _compile(key, lowered):
     processes itself."""
     compiled = lowered.compile()
     STATS["compiled"] += 1
-    jax_cache = jax.config.jax_compilation_cache_dir is not None and (
-        jax.config.jax_enable_compilation_cache
-    )
-    if not (jax_cache or _jax_cache_hits):
+    if not _jax_cache_in_use():
         _store(key, compiled)
     return compiled
+
+
+def _jax_cache_in_use() -> bool:
+    """Whether JAX's persistent compilation cache is on or has served this process."""
+    on = jax.config.jax_compilation_cache_dir is not None
+    return bool((on and jax.config.jax_enable_compilation_cache) or _jax_cache_hits)
 
 
 def _path(key, suffix=".bin"):
@@ -602,16 +648,24 @@ def _load(key, in_tree, out_tree):
 def _store(key, compiled):
     """Writes `compiled` under `key`, where it is known to load safely in another
     process (`_kernels`)."""
-    path = _path(key)
-    if path is None:
+    if _path(key) is None:
         return
     kinds = _kernels(compiled)
     try:
         payload = None if kinds is None else serialize_executable.serialize(compiled)[0]
     except Exception:  # noqa: BLE001 -- a program that cannot be serialized
         payload = None
-    if payload is None:
-        STATS["refused"] += 1  # (kept in this process's table only)
+    _write(key, payload, kinds)
+
+
+def _write(key, payload, kinds):
+    """Writes `payload`, a serialized executable calling the kernels `kinds`, under
+    `key`; None for either: refused (kept in this process's table only)."""
+    path = _path(key)
+    if path is None:
+        return
+    if payload is None or kinds is None:
+        STATS["refused"] += 1
         return
     if _folder.write(path, payload, {"key": key, "kernels": kinds}):
         STATS["written"] += 1

@@ -422,9 +422,9 @@ def _compiled(cpu, devices):
 def _compact_program(cfg, shape, cpu, devices):
     """`_compiled` for the compact tier, its static arguments bound: the program
     takes the tape as its last argument and depends on its size class only."""
-    return jax.jit(
+    return executables.program(
         lambda *args: _assemble(*shape, *_looped(devices)(cfg, *args)),
-        compiler_options=elemental_options() if cpu else None,
+        elemental_options() if cpu else {},
     )
 
 

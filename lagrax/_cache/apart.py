@@ -1,0 +1,65 @@
+"""A program compiled in a process of its own, whose XLA splits no loop across
+threads.
+
+XLA's CPU client splits each large loop of a program into parts run in parallel on
+its thread pool, sized when JAX starts from the cores the process may use. The
+library's programs run many short loops one after the other, so that handing the
+parts to the other threads and waiting for them costs more than the parts
+themselves (benchmarks/README.md: the same program runs faster unsplit in a
+process that may use every core). A process cannot resize its pool once JAX has
+started, so the programs kept once per machine (`executables.call`: the compact
+programs, which serve every Lagrangian of their class) are compiled in a new
+process started with a pool of one thread (`_compat.one_thread_environment`), from
+the program exported by `jax.export`; its executable comes back serialized, is
+written to the disk cache and loaded here. Anything that fails on the way (a
+program `jax.export` refuses, a worker that dies) leaves the compile to this
+process, as before: only slower."""
+
+import os
+import pickle
+import subprocess
+import sys
+
+import jax
+
+from .. import _compat
+
+
+_WORKER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "apart_worker.py")
+
+
+def wanted() -> bool:
+    """Whether a program compiled here would have its loops split (and compiling it
+    apart would not: it runs on one device)."""
+    return jax.local_device_count() == 1 and _compat.splits_loops()
+
+
+def compile_apart(fun, options, args) -> bytes | None:
+    """The serialized executable of `jax.jit(fun, compiler_options=options)(*args)`,
+    compiled in a new process with one XLA thread; None where that fails (the caller
+    compiles the program itself)."""
+    leaves, treedef = jax.tree.flatten(args)
+    try:
+        # A flat signature: `jax.export` serializes trees of standard nodes only.
+        flat = jax.jit(lambda *xs: jax.tree.leaves(fun(*treedef.unflatten(xs))))
+        exported = jax.export.export(flat)(*leaves)
+        if exported.nr_devices != 1:
+            return None
+        blob = exported.serialize()
+    except Exception:  # noqa: BLE001 -- not exportable (effects, callbacks...)
+        return None
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **_compat.one_thread_environment())
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # (its executables lack object code)
+    request = pickle.dumps((blob, bool(jax.config.jax_enable_x64), dict(options)))
+    try:
+        done = subprocess.run(
+            [sys.executable, "-P", _WORKER],  # (-P: no lagrax/_cache on its path)
+            input=request,
+            capture_output=True,
+            env=env,
+            check=True,
+        )
+        payload = pickle.loads(done.stdout)
+    except Exception:  # noqa: BLE001 -- the worker failed: compiled here instead
+        return None
+    return payload if isinstance(payload, bytes) else None
