@@ -37,29 +37,37 @@ def wanted() -> bool:
 def compile_apart(fun, options, args) -> bytes | None:
     """The serialized executable of `jax.jit(fun, compiler_options=options)(*args)`,
     compiled in a new process with one XLA thread; None where that fails (the caller
-    compiles the program itself)."""
-    leaves, treedef = jax.tree.flatten(args)
+    compiles the program itself). `fun` itself may be jitted (without options)."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **_compat.one_thread_environment())
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # (its executables lack object code)
     try:
+        # Started first: it imports JAX while the program is exported here.
+        worker = subprocess.Popen(
+            [sys.executable, "-P", _WORKER],  # (-P: no lagrax/_cache on its path)
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=env,
+        )
+    except OSError:
+        return None
+    try:
+        leaves, treedef = jax.tree.flatten(args)
         # A flat signature: `jax.export` serializes trees of standard nodes only.
         flat = jax.jit(lambda *xs: jax.tree.leaves(fun(*treedef.unflatten(xs))))
         exported = jax.export.export(flat)(*leaves)
         if exported.nr_devices != 1:
-            return None
-        blob = exported.serialize()
+            raise ValueError("more than one device")
+        x64 = bool(jax.config.jax_enable_x64)
+        request = pickle.dumps((exported.serialize(), x64, dict(options)))
     except Exception:  # noqa: BLE001 -- not exportable (effects, callbacks...)
+        worker.kill()
+        worker.communicate()
         return None
-    env = dict(os.environ, JAX_PLATFORMS="cpu", **_compat.one_thread_environment())
-    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # (its executables lack object code)
-    request = pickle.dumps((blob, bool(jax.config.jax_enable_x64), dict(options)))
     try:
-        done = subprocess.run(
-            [sys.executable, "-P", _WORKER],  # (-P: no lagrax/_cache on its path)
-            input=request,
-            capture_output=True,
-            env=env,
-            check=True,
-        )
-        payload = pickle.loads(done.stdout)
+        out, _ = worker.communicate(request)
+        payload = pickle.loads(out) if worker.returncode == 0 else None
     except Exception:  # noqa: BLE001 -- the worker failed: compiled here instead
+        worker.kill()
         return None
     return payload if isinstance(payload, bytes) else None

@@ -178,7 +178,8 @@ def program(fun, options=None):
     programs, compiled once per Lagrangian, are compiled here: apart, a first call
     would take a second longer.)"""
     jitted = jax.jit(fun, compiler_options=options)
-    _PLAIN[jitted] = (fun, dict(options or {}))
+    # (`jax.jit(fun)`, called inside the exported program, finds `fun`'s trace.)
+    _PLAIN[jitted] = (jax.jit(fun), dict(options or {}))
     return jitted
 
 
