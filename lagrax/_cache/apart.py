@@ -57,17 +57,15 @@ def compile_apart(fun, options, args) -> bytes | None:
         flat = jax.jit(lambda *xs: jax.tree.leaves(fun(*treedef.unflatten(xs))))
         exported = jax.export.export(flat)(*leaves)
         if exported.nr_devices != 1:
-            raise ValueError("more than one device")
+            return None
         x64 = bool(jax.config.jax_enable_x64)
         request = pickle.dumps((exported.serialize(), x64, dict(options)))
-    except Exception:  # noqa: BLE001 -- not exportable (effects, callbacks...)
-        worker.kill()
-        worker.communicate()
-        return None
-    try:
         out, _ = worker.communicate(request)
         payload = pickle.loads(out) if worker.returncode == 0 else None
-    except Exception:  # noqa: BLE001 -- the worker failed: compiled here instead
-        worker.kill()
-        return None
+    except Exception:  # noqa: BLE001 -- not exportable (effects, callbacks...), or
+        return None  # the worker failed: compiled here instead
+    finally:  # (also where this process is interrupted)
+        if worker.poll() is None:
+            worker.kill()
+            worker.wait()
     return payload if isinstance(payload, bytes) else None
