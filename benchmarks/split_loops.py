@@ -93,7 +93,7 @@ def worker(name, repeats):
     t = time.perf_counter()
     again = _apart.compile_apart(*executables._PLAIN[jitted], args)
     compile_apart = time.perf_counter() - t if again is not None else None
-    count = lambda c: c.as_text().count("outer_dimension_partitions")
+    count = lambda c: c.as_text().count('outer_dimension_partitions":["')
     outs = {}
     wall = {"apart": [], "here": []}
     cpu = {"apart": [], "here": []}

@@ -223,7 +223,7 @@ f = lambda x: jax.lax.fori_loop(0, 3, lambda i, x: jnp.sin(x) * 1.0001 + x, x)
 options = {"xla_cpu_use_fusion_emitters": False}
 x = jnp.ones(500_000)
 text = jax.jit(f, compiler_options=options).lower(x).compile().as_text()
-print(text.count("outer_dimension_partitions"))
+print(text.count('outer_dimension_partitions":["'))
 """
 
 
