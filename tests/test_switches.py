@@ -140,3 +140,21 @@ def test_default_sweep_steps_a_switching_lagrangian_with_its_fallback():
     assert isinstance(res.solver, dfx.Dopri8)
     assert np.all(np.asarray(res.status) == 0)
     assert abs(float(res.periods[1]) / _kinked_period(1.2, c) - 1) < 1e-11
+
+
+def test_period_step_checks_its_end_only_where_the_lagrangian_switches():
+    from lagrax._jaxpr.canonical import canonical_lagrangian
+    from lagrax._period.loop import _checked
+    from lagrax._taylor.stepper import TaylorStepper
+
+    step = TaylorStepper(order=20, max_step=np.inf)
+    smooth = lagrax.systems.pendulum.lagrangian()
+    kinked = lambda q, qd, t: (
+        0.5 * jnp.sum(qd**2)
+        - jnp.sum(q**2 + 1e-8 * jnp.where(q > 0.5, (q - 0.5) ** 2, 0.0))
+    )
+    checked = {}
+    for name, L in (("smooth", smooth), ("kinked", kinked)):
+        L_c, consts = canonical_lagrangian(L, np.float64)
+        checked[name] = _checked(step, L_c, consts, np.float64).checked
+    assert checked == {"smooth": False, "kinked": True}

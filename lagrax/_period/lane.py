@@ -51,6 +51,12 @@ class Lane(eqx.Module):
     outside the step. Count the checks after changing the loop: the `found.conflict`
     values in the step kernel's optimized LLVM IR (`--xla_dump_to`, with the
     threshold raised by `--xla_backend_extra_options` so that they are emitted).
+    Check there too that the loop is vectorized at all (`x double>` values) and
+    that the file defines no function besides the kernel (`define internal`): XLA
+    may emit a value with many readers as a function called from the loop, and
+    LLVM then leaves the loop scalar whatever the checks. Small changes to what
+    the step reads (the kind read as a float, the lane's units carried as rows of
+    `p`) do that.
     """
 
     p: Float[Array, "params lanes"]

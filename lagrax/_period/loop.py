@@ -18,13 +18,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._jaxpr.switches import switches
 from .._stepper.base import AbstractStepper, LaneField
 from .._stepper.controller import IController
+from .._taylor.stepper import TaylorStepper
 from .estimate import step_increments, step_terms
 from .events import Event, locate_in_step, search
 from .lane import advance, fuse_lanes, Lane, LaneConstants, next_lane
 from .outcome import lane_outcome
-from .quantities import mechanics
+from .quantities import CompactLagrangian, mechanics
 from .queue import Queue
 from .units import lane_scales
 
@@ -83,7 +85,7 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
     n = q0s.shape[0]
     width = min(cfg.width, n)
     dtmin = 1024 * jnp.finfo(q0s.dtype).eps
-    stepper, controller = cfg.stepper, IController()
+    stepper, controller = _checked(cfg.stepper, L, consts, q0s.dtype), IController()
     scalar_accel, accel_lanes = _accelerations(L, consts)
     # Each amplitude's release quantities, once for the whole queue (in the refill
     # they would be computed again for every lane).
@@ -142,6 +144,21 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
     init = (_pack_state(lane), out, state)
     lane, out, state = jax.lax.while_loop(cond, body, init)
     return queue.output(out), state.iterations * width, rel
+
+
+def _checked(stepper, L, consts, dtype):
+    """`stepper`, whose Taylor step checks its end (`TaylorStepper.checked`) only
+    where `L` switches branch with the state or time (`lagrax._jaxpr.switches`),
+    as the trajectories' loop does: for an analytic acceleration the step's defect
+    is its truncation, far below the limit, and the check is a Horner sweep per
+    step. The compact tier's `L` (its tapes) is not analysed: checked."""
+    if not isinstance(stepper, TaylorStepper) or isinstance(L, CompactLagrangian):
+        return stepper
+    q = jax.ShapeDtypeStruct((1,), dtype)
+    state = (q, q, jax.ShapeDtypeStruct((), dtype))
+    if switches(lambda q, qdot, t, *c: L(q, qdot, t, *c), state, consts):
+        return stepper
+    return dataclasses.replace(stepper, checked=False)
 
 
 # The fields of `Lane` that a step reads, carried from one iteration to the next as

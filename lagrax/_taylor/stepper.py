@@ -70,16 +70,18 @@ class TaylorStepper(AbstractStepper):
     kept is about $\varepsilon/2$. Coefficients from `coefficients`: a subclass that
     computes them otherwise (from a tape) keeps the rest of the step.
 
-    With an acceleration (`field.accel`, the period kernel) the step checks its end:
-    where its defect (`defect`) exceeds `KERNEL_DEFECT` its state is NaN, and the
-    lane fails. Without one (`field.accel=None`, a trajectory loop) it ends with its
-    polynomials' acceleration, which the caller checks against the true one
-    (`defect`) where the acceleration may switch branch.
+    With an acceleration (`field.accel`, the period kernel) and `checked` (its caller
+    clears it where the acceleration has no switch: `lagrax._jaxpr.switches`) the
+    step checks its end: where its defect (`defect`) exceeds `KERNEL_DEFECT` its
+    state is NaN, and the lane fails. Without one (`field.accel=None`, a trajectory
+    loop) it ends with its polynomials' acceleration, which the caller checks
+    against the true one (`defect`) where the acceleration may switch branch.
     """
 
     order: int = eqx.field(static=True)
     max_step: float = eqx.field(static=True)
     truncation: float | None = eqx.field(static=True, default=None, kw_only=True)
+    checked: bool = eqx.field(static=True, default=True, kw_only=True)
 
     rejects: ClassVar[bool] = False
     # How the step's outputs leave its one loop (`fused`): see `one_fusion` and
@@ -184,7 +186,7 @@ class TaylorStepper(AbstractStepper):
         raw = StepResult(x1, v1, a1, h, None, TaylorExpansion(xs, vs, as_, tol))
         raw = within_or_identity(within)(raw)
         x_end = raw.x
-        if field.accel is not None:
+        if field.accel is not None and self.checked:
             # A loop that never rejects a step (the period kernel) fails a lane whose
             # step crossed a switch of the acceleration: a non-finite state. A step
             # its caller ended early (at an event) is not checked: a branch that
