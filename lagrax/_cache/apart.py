@@ -49,7 +49,7 @@ def compile_apart(fun, options, args) -> bytes | None:
             stderr=subprocess.PIPE,
             env=env,
         )
-    except OSError:
+    except Exception:  # noqa: BLE001 -- no interpreter to start (embedded Python)
         return None
     try:
         leaves, treedef = jax.tree.flatten(args)
