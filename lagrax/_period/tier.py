@@ -107,11 +107,11 @@ def n_params(n):
     return _PARAMS * max(1, -(-n // _PARAMS))
 
 
-def _tape(fn, n_series, n_params, dtype, size, trig=True):
+def _tape(fn, n_series, n_params, dtype, size):
     """The compact tape of `fn(*scalars)`: its first `n_series` inputs `(t, y...)`,
     then `n_params` parameters; its outputs a tuple of scalars. Its program is
     built entry by entry, as `System`'s (a Lagrangian of particles computes with
-    their position vectors). `trig`: `compact.build`'s."""
+    their position vectors)."""
     scalar = jax.ShapeDtypeStruct((), dtype)
     specs = [scalar] * (n_series + n_params)
     with fusion_off():  # (an identity for XLA; no opcode for it)
@@ -124,9 +124,7 @@ def _tape(fn, n_series, n_params, dtype, size, trig=True):
 
         closed = jax.make_jaxpr(entries)(*specs)
     prog = _SystemProgram(closed, n_series, n_params)
-    return compact.build(
-        prog, prog.inputs, prog.params, prog.outs, dtype, size=size, trig=trig
-    )
+    return compact.build(prog, prog.inputs, prog.params, prog.outs, dtype, size=size)
 
 
 def _build(L_c, consts, dtype):
@@ -161,10 +159,7 @@ def _build(L_c, consts, dtype):
 
     tapes = PeriodTapes(
         step=_tape(step, 3, 3 + P, dtype, _SIZE["step"]),
-        # (The point tape runs at a few points per lane, the step tape at every
-        # step: the C library's sines there keep its many copies in the program
-        # small.)
-        point=_tape(point, 3, P, dtype, _SIZE["point"], trig=False),
+        point=_tape(point, 3, P, dtype, _SIZE["point"]),
     )
     return CompactLagrangian((tapes.step.size, tapes.point.size), P), tapes
 

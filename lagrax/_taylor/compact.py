@@ -200,9 +200,6 @@ class CompactTape(eqx.Module):
     each row's constants $(c_0, c_1)$ and whether it weighs its plain and its
     weighted sum, `hslot` its node's slot. `blocks`: the blocks in use at order 0
     and above.
-
-    `trig`: whether `compact_values` evaluates its sines with `trig=True` when
-    asked (`build`).
     """
 
     values: jax.Array
@@ -233,7 +230,6 @@ class CompactTape(eqx.Module):
     hslot: jax.Array
     families: tuple = eqx.field(static=True)
     caps0: tuple = eqx.field(static=True)  # (order-0 blocks per family)
-    trig: bool = eqx.field(static=True, default=True)
 
     @property
     def size(self):
@@ -246,8 +242,7 @@ class CompactTape(eqx.Module):
                 "sgat", "dgat", "hist", "seq1",
             )
         )  # fmt: skip
-        static = (("families", self.families), ("caps0", self.caps0))
-        return shapes + static + (("trig", self.trig),)
+        return shapes + (("families", self.families), ("caps0", self.caps0))
 
     def sizes(self) -> dict:
         """The smallest sizes (`build`'s `size`) that give another tape this one's
@@ -586,17 +581,7 @@ def _family(node):
 
 
 def build(
-    prog,
-    inputs,
-    params,
-    outs,
-    dtype,
-    Gc=8,
-    Gl=8,
-    G0=16,
-    size=None,
-    traced=False,
-    trig=True,
+    prog, inputs, params, outs, dtype, Gc=8, Gl=8, G0=16, size=None, traced=False
 ):
     """The `CompactTape` of a flattened program: `inputs` (ids of $t$ and the
     state's entries), `params` (per-lane parameter ids), `outs` ($f$'s ids).
@@ -606,10 +591,7 @@ def build(
     1-DOF Lagrangian's, runs fastest in narrow blocks, whose padding rows cost
     as much as nodes). `traced=True`: constants that are
     tracers (values of an enclosing trace) become parameters after `params`, and
-    the result is `(tape, their values)`. `trig=False`: `compact_values` takes the
-    C library's sines for this tape even where asked for vectorized ones (a
-    tape evaluated at a few points per lane, not at every step: its copies in a
-    program are smaller, the executable loads faster).
+    the result is `(tape, their values)`.
 
     **Raises:** `NotImplementedError` where a variable has more than one entry, a
     primitive has no opcode, or (without `traced`) a constant is not concrete."""
@@ -869,7 +851,6 @@ def build(
         hslot=as_i(hslot),
         families=fams,
         caps0=tuple(B0[f] for f in fams),
-        trig=bool(trig),
     )
     if traced:
         return tape, [prog.consts[i] for i in extra]
@@ -1430,10 +1411,8 @@ def compact_values(tape: CompactTape, t, ys, params, trig=False):
     r"""The values of the tape's outputs (`outs`, its program's $f$) at one point:
     order 0 only, no series. `t`, `ys`, `params` as in `compact_coefficients`;
     returns an array `(outputs, W)`. The same compiled program evaluates any
-    tape of its size class at any point. `trig` as in `compact_coefficients`,
-    where the tape allows it (`build`)."""
+    tape of its size class at any point."""
     tape = jax.tree.map(jnp.asarray, tape)
-    trig = trig and tape.trig
     Y, D, _ = _inputs0(tape, t, ys, params)
     if tape.seg0.shape[0] > 1:  # (factorizations: their inverses are in D)
         Y, _ = _order0(tape, Y, D, trig)
