@@ -1019,7 +1019,7 @@ def _factor(tape, Y, D, row, NM):
     from .solve import _substitute, factor
 
     W = Y.shape[1]
-    ent = Y[tape.fac_m[row]]  # (NM*NM, W)
+    ent = _at(Y, tape.fac_m[row])  # (NM*NM, W)
     M = [[ent[r * NM + c] for c in range(NM)] for r in range(NM)]
     sign, Lf, inv, ok = factor(M, NM)
     cols = []
@@ -1031,6 +1031,13 @@ def _factor(tape, Y, D, row, NM):
     flat = D.reshape((-1, W)).at[tape.fac_dst[row]].set(Minv, mode="drop")
     Y = Y.at[tape.fac_ok[row]].set(ok.astype(Y.dtype))
     return Y, flat.reshape(D.shape)
+
+
+def _at(Y, idx):
+    """`Y[idx]` for an index array into the first axis that is in range by
+    construction (the tape's): a gather with its indices clipped, not wrapped
+    and checked (fewer operations in the program, none at run time)."""
+    return jnp.take(Y, idx, axis=0, mode="clip")
 
 
 def _bound(x):
@@ -1064,7 +1071,7 @@ def _order0(tape, Y, D, trig, seg=None, fns=_FAMILY_FNS):
     def family(fn, bi, Y, old_d):
         op = tape.op0[bi][:, None]
         args = tape.arg0[bi]
-        a, b_, c = (Y[args[:, i]] for i in range(3))
+        a, b_, c = (_at(Y, args[:, i]) for i in range(3))
         prm = [tape.prm0[bi, i][:, None] for i in range(3)]
         value, d0, d1 = fn(op, prm, a, b_, c, old_d[:, 0], old_d[:, 1], trig)
         return value, jnp.stack([d0, d1], axis=1)
@@ -1184,7 +1191,7 @@ def _row_form(tape, D, P0, Q0):
     terms inside its plain and weighted sums: with them the node's coefficient is
     $\alpha X_k + \beta P_k + \gamma Q_k + \sum_{j=1}^{k-1} (u_0 + u_1 j/k) P_j
     Q_{k-j}$ (the terms $j = 0$ and $j = k$ of its sums in $\beta, \gamma$)."""
-    de = D[tape.hslot]
+    de = _at(D, tape.hslot)
     d, e = de[:, 0], de[:, 1]
     c0, c1, plain, weighted = (tape.hcst[i][:, None] for i in range(4))
     u0 = d * c1 * plain
@@ -1213,19 +1220,19 @@ def _order_k(tape, Y, F, inner, D, blocks=None):
 
     def cau(bi, Y):
         out, row = tape.cout[bi, 0], tape.cout[bi, 1]
-        X, Pk, Qk = (Y[tape.cgat[bi, i]] for i in range(3))
+        X, Pk, Qk = (_at(Y, tape.cgat[bi, i]) for i in range(3))
         f = lax.dynamic_slice(F, (i32(0), row, i32(0)), (3, Gc, W))
         d = lax.dynamic_slice(inner, (row, i32(0)), (Gc, W))
         return rows(f[0] * X + f[1] * Pk + f[2] * Qk + d), out
 
     def slin(bi, Y):
-        X0, X1 = Y[tape.sgat[bi, 0]], Y[tape.sgat[bi, 1]]
+        X0, X1 = _at(Y, tape.sgat[bi, 0]), _at(Y, tape.sgat[bi, 1])
         c = tape.sst[bi]
         return rows(c[0][:, None] * X0 + c[1][:, None] * X1), tape.sout[bi]
 
     def dlin(bi, Y):
         out = tape.dout[bi]
-        X0, X1 = Y[tape.dgat[bi, 0]], Y[tape.dgat[bi, 1]]
+        X0, X1 = _at(Y, tape.dgat[bi, 0]), _at(Y, tape.dgat[bi, 1])
         d = lax.dynamic_slice(D, (out, i32(0), i32(0)), (Gl, 2, W))
         return rows(d[:, 0] * X0 + d[:, 1] * X1), out
 
@@ -1266,16 +1273,16 @@ def compact_coefficients(
     # --- order 0
     Y, D, state = _inputs0(tape, t, ys, params)
     Y, D = _order0(tape, Y, D, trig, seg, _family_fns(opcodes))
-    Y, D = Y[tape.perm], D[tape.perm]
+    Y, D = _at(Y, tape.perm), _at(D, tape.perm)
     # --- orders 1..K-1 of the nodes, 2..K of the state
     H = tape.hist.shape[1]
-    P0, Q0 = Y[tape.hist[0]], Y[tape.hist[1]]
+    P0, Q0 = _at(Y, tape.hist[0]), _at(Y, tape.hist[1])
     F, u0, u1 = _row_form(tape, D, P0, Q0)
     # Histories, order first, zero where not yet computed.
     Hp = jnp.zeros((K, H, W), dtype).at[0].set(P0)
     Hq = jnp.zeros((K, H, W), dtype).at[0].set(Q0)
     Z = jnp.zeros((m - 1, K + 1, W), dtype)
-    Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(Y[tape.outs])
+    Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(_at(Y, tape.outs))
     rows = _bound(tape.blocks[2]) if rows is None else rows
     C = tape.cgat.shape[2]
     chunks = (rows + C - 1) // C
@@ -1295,16 +1302,17 @@ def compact_coefficients(
         """The histories' order `k` from `Y`: every row, or the rows in use."""
         zero = i32(0)
         if H > _ALL_ROWS:
-            Hp = lax.dynamic_update_slice(Hp, Y[tape.hist[0]][None], (k, zero, zero))
-            Hq = lax.dynamic_update_slice(Hq, Y[tape.hist[1]][None], (k, zero, zero))
+            p, q = _at(Y, tape.hist[0])[None], _at(Y, tape.hist[1])[None]
+            Hp = lax.dynamic_update_slice(Hp, p, (k, zero, zero))
+            Hq = lax.dynamic_update_slice(Hq, q, (k, zero, zero))
             return Hp, Hq
 
         def put(c, carry):
             Hp, Hq = carry
             r = (c * C).astype(jnp.int32)
             at = lax.dynamic_slice_in_dim(tape.hist, r, C, 1)
-            Hp = lax.dynamic_update_slice(Hp, Y[at[0]][None], (k, r, zero))
-            Hq = lax.dynamic_update_slice(Hq, Y[at[1]][None], (at_q(k), r, zero))
+            Hp = lax.dynamic_update_slice(Hp, _at(Y, at[0])[None], (k, r, zero))
+            Hq = lax.dynamic_update_slice(Hq, _at(Y, at[1])[None], (at_q(k), r, zero))
             return Hp, Hq
 
         return lax.fori_loop(0, chunks, put, (Hp, Hq))
@@ -1318,7 +1326,7 @@ def compact_coefficients(
         inner = inner_of(k, Hp, Hq)
         Y = _order_k(tape, Y, F, inner, D, blocks)
         Hp, Hq = store(k, Y, Hp, Hq)
-        f = Y[tape.outs] / (k + 1).astype(dtype)
+        f = _at(Y, tape.outs) / (k + 1).astype(dtype)
         Z = lax.dynamic_update_slice(Z, f[:, None], (i32(0), k + 1, i32(0)))
         return Y, Hp, Hq, Z
 
@@ -1382,7 +1390,7 @@ def _values0(tape, Y, trig):
 
     def family(fn, bi, Y):
         args = tape.arg0[bi]
-        a, b, c = (Y[args[:, i]] for i in range(3))
+        a, b, c = (_at(Y, args[:, i]) for i in range(3))
         prm = [tape.prm0[bi, i][:, None] for i in range(3)]
         return fn(tape.op0[bi][:, None], prm, a, b, c, trig)
 
@@ -1410,7 +1418,7 @@ def compact_values(tape: CompactTape, t, ys, params, trig=False):
         Y, _ = _order0(tape, Y, D, trig)
     else:
         Y = _values0(tape, Y, trig)
-    return Y[tape.perm[tape.outs]]
+    return _at(Y, _at(tape.perm, tape.outs))
 
 
 @functools.partial(jax.jit, static_argnames=("K", "trig", "bounds", "opcodes"))
