@@ -1,10 +1,10 @@
-"""XLA's split loops: the compact programs compiled in the process against compiled
-apart, in a process that may use every core.
+"""XLA's split loops: `simulate_batch`'s compact program compiled in the process
+against compiled apart, in a process that may use every core.
 
 XLA's CPU client splits each large loop of a program into parts run in parallel on
 its thread pool, sized from the cores the process may use when JAX starts. The
-library compiles the programs it keeps once per machine (`executables.call`: the
-compact tier's) in a process of its own with a pool of one thread
+library compiles `simulate_batch`'s compact programs (kept once per machine,
+`executables.program`) in a process of its own with a pool of one thread
 (`lagrax._cache.apart`) where a program compiled in the process would be split.
 Here, in one fresh unpinned process per system (`LAGRAX_COMPACT=2`, an empty disk
 cache of its own), the library's first call compiles the compact program apart;
@@ -15,13 +15,12 @@ both, the program already traced (apart: its export, the worker's start, its
 compile). The split loops are
 counted in each executable's optimized HLO (`outer_dimension_partitions`).
 
-- `pendulum`: `sweep_periods` of 4096 amplitudes 0.01-3.1 rad, defaults;
 - `double_pendulum`: `simulate_batch` of 1024 releases from rest, θ1, θ2 in [-1, 1],
   t = 10, rtol = atol = 1e-10;
 - `chain4` (`chainN`): N unit pendulums, 256 releases in ±0.5 rad, t = 10, `Taylor()`,
   rtol = atol = 3e-12.
 
-    python benchmarks/split_loops.py [--systems pendulum double_pendulum chain4]
+    python benchmarks/split_loops.py [--systems double_pendulum chain4 chain6]
         [--repeats 5]
 
 Results: `results/split_loops.json`.
@@ -42,7 +41,6 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 def _call(name):
     """The library call that runs the compact program of system `name`."""
-    import jax.numpy as jnp
     import numpy as np
 
     import lagrax
@@ -51,9 +49,6 @@ def _call(name):
     import taylor_coefficients as tc
 
     L, n = tc.lagrangian(name)
-    if name == "pendulum":
-        q0 = jnp.linspace(0.01, 3.1, 4096)
-        return lambda: lagrax.sweep_periods(L, q0).periods
     rng = np.random.default_rng(0)
     if name == "double_pendulum":
         q0 = rng.uniform(-1.0, 1.0, (1024, n))
@@ -124,9 +119,7 @@ def worker(name, repeats):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "--systems", nargs="+", default=["pendulum", "double_pendulum", "chain4"]
-    )
+    parser.add_argument("--systems", nargs="+", default=["double_pendulum", "chain4"])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()

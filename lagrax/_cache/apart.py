@@ -2,18 +2,18 @@
 threads.
 
 XLA's CPU client splits each large loop of a program into parts run in parallel on
-its thread pool, sized when JAX starts from the cores the process may use. The
-library's programs run many short loops one after the other, so that handing the
-parts to the other threads and waiting for them costs more than the parts
-themselves (benchmarks/README.md: the same program runs faster unsplit in a
-process that may use every core). A process cannot resize its pool once JAX has
-started, so the programs kept once per machine (`executables.call`: the compact
-programs, which serve every Lagrangian of their class) are compiled in a new
-process started with a pool of one thread (`_compat.one_thread_environment`), from
-the program exported by `jax.export`; its executable comes back serialized, is
-written to the disk cache and loaded here. Anything that fails on the way (a
-program `jax.export` refuses, a worker that dies) leaves the compile to this
-process, as before: only slower."""
+its thread pool, sized when JAX starts from the cores the process may use.
+`simulate_batch`'s compact program runs thousands of short loops per call (its
+blocks of the tape, order by order), so that handing the parts to the other threads
+and waiting for them costs more than the parts themselves (`benchmarks/README.md`:
+unsplit, it runs faster and on a third of the CPU time in a process that may use
+every core). A process cannot resize its pool once JAX has started, so those
+programs (`executables.program`, kept once per machine: they serve every Lagrangian
+of their class) are compiled in a new process started with a pool of one thread
+(`_compat.one_thread_environment`), from the program exported by `jax.export`; its
+executable comes back serialized, is written to the disk cache and loaded here.
+Anything that fails on the way (a program `jax.export` refuses, a worker that dies)
+leaves the compile to this process, as before: only slower."""
 
 import os
 import pickle

@@ -7,9 +7,9 @@ serialize_executable`) and loaded in a fraction of a second after:
 - `call`: programs that do not depend on the Lagrangian (the compact tier,
     `lagrax._period.tier`), keyed on the library's source, the static configuration
     and the arguments' shapes, without tracing anything: one executable serves every
-    Lagrangian (entries `t*.bin`). Where XLA would split their loops across threads
-    in this process, they are compiled in a process of their own that keeps them
-    whole (`lagrax._cache.apart`).
+    Lagrangian (entries `t*.bin`). Those made by `program` (`simulate_batch`'s),
+    where XLA would split their loops across threads in this process, are compiled
+    in a process of their own that keeps them whole (`lagrax._cache.apart`).
 - `cached_call`: any compiled program of an eager call (the period sweep, the
     batched trajectories), keyed on the text of the lowered program itself (which
     holds everything it computes: a rebuilt Lagrangian with new parameter values that
@@ -174,9 +174,10 @@ def program(fun, options=None):
     """`jax.jit(fun, compiler_options=options)`, for `call`: where XLA would split
     its loops across threads in this process, `call` compiles it in a process of its
     own that does not (`lagrax._cache.apart`), from `fun` itself (a jitted function
-    with compile options cannot be called inside another). (`cached_call`'s
-    programs, compiled once per Lagrangian, are compiled here: apart, a first call
-    would take a second longer.)"""
+    with compile options cannot be called inside another). Worth a second more of
+    compile for a program of many short loops run often (`simulate_batch`'s compact
+    one), not for the period sweep's (`benchmarks/README.md`), nor for `cached_call`'s
+    programs, compiled per Lagrangian."""
     jitted = jax.jit(fun, compiler_options=options)
     # (`jax.jit(fun)`, called inside the exported program, finds `fun`'s trace.)
     _PLAIN[jitted] = (jax.jit(fun), dict(options or {}))

@@ -436,7 +436,8 @@ def _jacobian_jit(L, m, devices, elemental, with_q, wanted):
         run = lambda q0, consts: jitted(q0, order, consts, *rest)
         return forward_jacobian(run, q0, consts, with_q, wanted)
 
-    return executables.program(jacobian, elemental_options() if elemental else None)
+    options = elemental_options() if elemental else None
+    return jax.jit(jacobian, compiler_options=options)
 
 
 _sweep_call.defjvp(_sweep_call_jvp, symbolic_zeros=True)
@@ -453,7 +454,9 @@ def _sweep_jit(L, m, devices, elemental=False):
     `jax.jit` (its C++ dispatch), not `eqx.filter_jit`, whose Python-side flattening
     and hashing of the static arguments cost a noticeable part of a sweep."""
     options = elemental_options() if elemental else None
-    return executables.program(functools.partial(_sweep_body, L, m, devices), options)
+    return jax.jit(
+        functools.partial(_sweep_body, L, m, devices), compiler_options=options
+    )
 
 
 def _sweep_body(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol):
