@@ -39,6 +39,7 @@ def compile_apart(fun, options, args) -> bytes | None:
     compiled in a new process with one XLA thread; None where that fails (the caller
     compiles the program itself). `fun` itself may be jitted (without options)."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", **_compat.one_thread_environment())
+    env["JAX_ENABLE_X64"] = "1" if jax.config.jax_enable_x64 else "0"
     env.pop("JAX_COMPILATION_CACHE_DIR", None)  # (its executables lack object code)
     try:
         # Started first: it imports JAX while the program is exported here.
@@ -58,8 +59,7 @@ def compile_apart(fun, options, args) -> bytes | None:
         exported = jax.export.export(flat)(*leaves)
         if exported.nr_devices != 1:
             return None
-        x64 = bool(jax.config.jax_enable_x64)
-        request = pickle.dumps((exported.serialize(), x64, dict(options)))
+        request = pickle.dumps((exported.serialize(), dict(options)))
         out, _ = worker.communicate(request)
         payload = pickle.loads(out) if worker.returncode == 0 else None
     except Exception:  # noqa: BLE001 -- not exportable (effects, callbacks...), or
