@@ -6,6 +6,7 @@ that fails loudly when the dependency moves underneath.
 """
 
 import functools
+import os
 
 import diffrax as dfx
 import jax
@@ -63,8 +64,6 @@ def splits_loops() -> bool:
     """Whether XLA may split a program's loops across threads in this process: it
     may run on more than one core and no pool variable keeps it to one thread (the
     pool holds at least one thread per CPU device)."""
-    import os
-
     if jax.local_device_count() > 1:
         return True
     for name in _POOL_VARIABLES:
