@@ -169,3 +169,92 @@ def test_a_program_compiled_apart_runs_twice_on_one_cache(tmp_path):
     np.testing.assert_array_equal(
         np.load(tmp_path / "first.npy"), np.load(tmp_path / "second.npy")
     )
+
+
+# `executables.compile_later`: a `simulate_batch` call's specialized program compiled
+# by a worker process (the first process waits for it, or exits at once), loaded by
+# the next from the entry it wrote.
+_LATER = """
+import json, os, sys
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+import lagrax
+from lagrax._cache import executables
+from lagrax._trajectory import batch
+
+mode, out = sys.argv[1], sys.argv[2]
+seen = []
+real = batch.cached_call
+batch.cached_call = lambda *a, **kw: seen.append((a, kw)) or real(*a, **kw)
+executables._usable_cores = lambda: 2
+
+def L(q, qdot, t):
+    return 0.5 * jnp.sum(qdot**2) - 0.5 * jnp.sum(q**2) - 0.1 * jnp.sum(q**4)
+
+q0 = jnp.linspace(-1.0, 1.0, 12).reshape(6, 2)
+sol = lagrax.simulate_batch(
+    L, q0, jnp.zeros_like(q0), 0.0, 3.0, solver=lagrax.Taylor(order=8),
+    rtol=1e-12, atol=1e-12,
+)
+np.save(out, np.asarray(sol.ys[0]))
+if mode != "load":
+    ((jitted, options, cfg, shape, *rest), kw) = seen[0]
+    os.environ["LAGRAX_CACHE_DIR"] = sys.argv[3]
+    plain = batch._plain(cfg, shape, *kw["origin"][1:])
+    executables.compile_later(plain, jitted, options, cfg, shape, *rest, **kw)
+    ((job),) = executables._LATER.values()
+    if mode == "exit":
+        while job.worker is None:
+            job.thread.join(0.01)
+        print(json.dumps(dict(worker=job.worker.pid)))
+        sys.exit(0)
+    job.thread.join(300)
+    print(json.dumps(dict(state=job.state, stats=dict(executables.STATS))))
+else:
+    print(json.dumps(dict(stats=dict(executables.STATS))))
+"""
+
+
+def _later(tmp_path, mode, cache):
+    env = dict(os.environ, PYTHONFAULTHANDLER="1")
+    env["LAGRAX_CACHE_DIR"] = str(cache) if mode == "load" else ""
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    proc = subprocess.run(
+        [sys.executable, "-c", _LATER, mode, str(tmp_path / f"{mode}.npy"), str(cache)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, f"{mode}:\n{proc.stderr[-4000:]}"
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_a_program_compiled_later_runs_twice_on_one_cache(tmp_path):
+    cache = tmp_path / "cache"
+    first = _later(tmp_path, "wait", cache)
+    assert first == {"state": "done", "stats": {"written": 1, "compiled later": 1}}
+    second = _later(tmp_path, "load", cache)
+    assert second["stats"] == {"loaded": 1}, second
+    np.testing.assert_array_equal(
+        np.load(tmp_path / "wait.npy"), np.load(tmp_path / "load.npy")
+    )
+
+
+def test_a_process_that_exits_stops_its_compile_later(tmp_path):
+    """A process that exits while its worker compiles exits cleanly, and takes its
+    worker with it."""
+    import time
+
+    pid = _later(tmp_path, "exit", tmp_path / "cache")["worker"]
+    for _ in range(100):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail(f"the worker {pid} outlived its process")
+    assert not (tmp_path / "cache").exists() or not any(
+        p.suffix == ".bin" for p in (tmp_path / "cache").iterdir()
+    )

@@ -277,3 +277,83 @@ def test_a_program_the_worker_cannot_compile_is_compiled_here(
     assert dict(executables.STATS) == {"compiled": 1, "written": 1}
     assert len(_files(tmp_path)) == 1
     np.testing.assert_allclose(out, 2.0 * np.sin(np.linspace(0.0, 1.0, 5)))
+
+
+def _batch_call(monkeypatch):
+    """A `simulate_batch` call's specialized program, as `cached_call` gets it
+    (compiled here with the disk cache off, nothing written): `(args, kwargs,
+    solution)`."""
+    from lagrax._trajectory import batch
+
+    seen = []
+    real = batch.cached_call
+    monkeypatch.setattr(
+        batch, "cached_call", lambda *a, **kw: seen.append((a, kw)) or real(*a, **kw)
+    )
+
+    def L(q, qdot, t):
+        return 0.5 * jnp.sum(qdot**2) - 0.5 * jnp.sum(q**2)
+
+    q0 = jnp.linspace(-1.0, 1.0, 12).reshape(6, 2)
+    run = lambda: lagrax.simulate_batch(
+        L, q0, jnp.zeros_like(q0), 0.0, 3.0, solver=lagrax.Taylor(order=8),
+        rtol=1e-12, atol=1e-12,
+    )  # fmt: skip
+    with monkeypatch.context() as m:
+        m.setenv("LAGRAX_CACHE_DIR", "")
+        sol = run()
+    ((args, kwargs),) = seen
+    return args, kwargs, run, sol
+
+
+def test_a_program_compiled_later_is_loaded_in_its_place(cache, monkeypatch):
+    """`compile_later`: a call's specialized program compiled by a worker process
+    while this one goes on; once done, a later call finds it on disk by its pre-key
+    and loads it, with the numbers of the program compiled here, bit for bit."""
+    from lagrax._trajectory import batch
+
+    folder, loads, new_process = cache
+    monkeypatch.setattr(executables, "_LATER", {})
+    monkeypatch.setattr(executables, "STATS", collections.Counter())
+    monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
+    (jitted, options, cfg, shape, *rest), kwargs, run, here = _batch_call(monkeypatch)
+    assert not executables.available(jitted, options, cfg, shape, *rest, **kwargs)
+    plain = batch._plain(cfg, shape, *kwargs["origin"][1:])
+    start = lambda: executables.compile_later(
+        plain, jitted, options, cfg, shape, *rest, **kwargs
+    )
+    assert start() == "running"
+    assert start() == "running"  # (one job per program)
+    ((_, job),) = executables._LATER.items()
+    job.thread.join(timeout=300)
+    assert job.state == "done", job.state
+    assert executables.later_state(jitted, options, cfg, shape, *rest, **kwargs) == (
+        "done"
+    )
+    assert executables.available(jitted, options, cfg, shape, *rest, **kwargs)
+    assert dict(executables.STATS) == {"written": 1, "compiled later": 1}
+    new_process()
+    again = run()
+    assert loads == [True] and executables.STATS["compiled"] == 0
+    np.testing.assert_array_equal(again.ys[0], here.ys[0])
+    np.testing.assert_array_equal(again.ys[1], here.ys[1])
+
+
+def test_nothing_is_compiled_later_without_an_idle_core(cache, monkeypatch):
+    from lagrax._trajectory import batch
+
+    monkeypatch.setattr(executables, "_LATER", {})
+    (jitted, options, cfg, shape, *rest), kwargs, _, _ = _batch_call(monkeypatch)
+    plain = batch._plain(cfg, shape, *kwargs["origin"][1:])
+    start = lambda: executables.compile_later(
+        plain, jitted, options, cfg, shape, *rest, **kwargs
+    )
+    monkeypatch.setattr(executables, "_usable_cores", lambda: 1)
+    assert start() is None
+    monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
+    monkeypatch.setenv("LAGRAX_BACKGROUND", "0")
+    assert start() is None
+    monkeypatch.setenv("LAGRAX_BACKGROUND", "1")
+    monkeypatch.setenv("LAGRAX_CACHE_DIR", "")
+    assert start() is None
+    assert executables._LATER == {}

@@ -140,8 +140,11 @@ def test_the_tier_rule(monkeypatch, tmp_path):
     assert plan.L.n_params % tier._PARAMS == 0
     # The time spent there with this L and configuration, and the work at hand,
     # against the specialized compile (a ski rental).
+    assert not plan.repeated()
     tier._SPENT[(L_c, "config", "sweep")] = tier.COMPILE_S["sweep"] - 1e-3
     assert tier.plan(*args) is None
+    # No rental while the specialized program compiles in another process.
+    assert tier.plan(*args, waiting=True).repeated()
     assert tier.plan(L_c, consts, taylor, "other", 4096, jnp.float64) is not None
     tier._RATE["sweep"] = 1.0  # (a sweep this size would repay the compile)
     assert tier.plan(L_c, consts, taylor, "other", 4096, jnp.float64) is None
@@ -265,3 +268,38 @@ def test_the_compact_tier_agrees_with_the_specialized_program(
     d_compact = jax.grad(mean)(q)
     monkeypatch.setenv("LAGRAX_COMPACT", "0")
     np.testing.assert_allclose(d_compact, jax.grad(mean)(q), rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.slow
+def test_a_repeated_sweep_takes_the_specialized_program_compiled_later(
+    monkeypatch, compact_cache
+):
+    """Where a core is idle, a Lagrangian's second sweep on the compact tier (its
+    executable at hand) starts its specialized program's compile in a worker
+    process; once on disk, it takes over (same periods to rounding, same
+    statuses)."""
+    folder, loads, _ = compact_cache
+    for name, empty in (("_COMPILED", collections.Counter()), ("_NOTIFIED", set())):
+        monkeypatch.setattr(tier, name, empty)
+    monkeypatch.setattr(tier, "_SPENT", collections.Counter())
+    monkeypatch.setattr(tier, "_RATE", {})
+    monkeypatch.setattr(executables, "_LATER", {})
+    monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
+    monkeypatch.setenv("LAGRAX_COMPACT", "1")
+    tier.several_lagrangians()
+    q0 = jnp.linspace(0.1, 3.0, 64)
+    L = pendulum.lagrangian(g=1.9)
+    with pytest.warns(UserWarning, match="once per machine"):
+        first = lagrax.sweep_periods(L, q0)
+    lagrax.sweep_periods(L, q0)  # (the first that ran a compiled program)
+    assert executables._LATER == {}
+    lagrax.sweep_periods(L, q0)
+    ((job),) = executables._LATER.values()
+    job.thread.join(timeout=600)
+    assert job.state == "done"
+    ran = []
+    monkeypatch.setattr(tier.Compact, "run", lambda *a: ran.append(a))
+    third = lagrax.sweep_periods(L, q0)
+    assert not ran and loads[-1] is True
+    np.testing.assert_allclose(third.periods, first.periods, rtol=1e-14, atol=0)
+    np.testing.assert_array_equal(third.status, first.status)

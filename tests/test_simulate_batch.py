@@ -297,3 +297,42 @@ def test_tiers_compact_first_then_specialized(monkeypatch):
     batch._SPENT.clear()
     run()
     assert calls == [1, 1]
+
+
+def test_tiers_compile_the_specialized_program_later(monkeypatch, executable_cache):
+    """Where a core is idle, from the second call of a Lagrangian on the compact
+    tier, its specialized program compiles in a worker process; the compact tier
+    runs the calls meanwhile (no ski rental), and the specialized program takes
+    over once on disk."""
+    import collections
+
+    from lagrax._cache import executables
+    from lagrax._trajectory import batch
+
+    folder, loads, _ = executable_cache
+    calls = []
+    real = executables.cached_call
+    monkeypatch.setattr(
+        batch, "cached_call", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    monkeypatch.setattr(batch, "_SPENT", collections.Counter())
+    monkeypatch.setattr(executables, "_LATER", {})
+    monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
+    monkeypatch.setattr(batch, "_compile_estimate", lambda nodes, order: 1e-3)
+    monkeypatch.setattr(batch, "_COMPACT_FROM", 0.0)
+    monkeypatch.setenv("LAGRAX_COMPACT", "1")
+    q0 = np.array([[0.5, -0.2], [0.1, 0.3]])
+    run = lambda: lagrax.simulate_batch(
+        oscillator, q0, np.zeros_like(q0), 0.0, 1.0, solver=TAYLOR, rtol=1e-10,
+        atol=1e-10,
+    )  # fmt: skip
+    first = run()  # (the compact program compiled and written: the tier's first)
+    assert not calls and executables._LATER == {}
+    run()  # (the spent time is past the estimate: the job, not the rental)
+    ((job),) = executables._LATER.values()
+    assert not calls and job.state in ("running", "done")
+    job.thread.join(timeout=300)
+    assert job.state == "done"
+    third = run()
+    assert calls == [1] and loads[-1] is True
+    np.testing.assert_allclose(third.ys[0], first.ys[0], rtol=0, atol=1e-12)

@@ -34,10 +34,12 @@ def wanted() -> bool:
     return jax.local_device_count() == 1 and _compat.splits_loops()
 
 
-def compile_apart(fun, options, args) -> bytes | None:
+def compile_apart(fun, options, args, started=None) -> bytes | None:
     """The serialized executable of `jax.jit(fun, compiler_options=options)(*args)`,
     compiled in a new process with one XLA thread; None where that fails (the caller
-    compiles the program itself). `fun` itself may be jitted (without options)."""
+    compiles the program itself). `fun` itself may be jitted (without options).
+    `started(worker)`: called with the worker's `subprocess.Popen` once it runs
+    (killing it makes this return None)."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", **_compat.one_thread_environment())
     env["JAX_ENABLE_X64"] = "1" if jax.config.jax_enable_x64 else "0"
     env.pop("JAX_COMPILATION_CACHE_DIR", None)  # (its executables lack object code)
@@ -52,6 +54,8 @@ def compile_apart(fun, options, args) -> bytes | None:
         )
     except Exception:  # noqa: BLE001 -- no interpreter to start (embedded Python)
         return None
+    if started is not None:
+        started(worker)
     try:
         leaves, treedef = jax.tree.flatten(args)
         # A flat signature: `jax.export` serializes trees of standard nodes only.

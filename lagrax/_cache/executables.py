@@ -16,7 +16,9 @@ serialize_executable`) and loaded in a fraction of a second after:
     reach it as arguments lowers to the same text) and the compile options. A script
     run again, or a notebook restarted, loads them instead of compiling (seconds
     for a first sweep on a CPU core), as heyoka.py's on-disk cache of compiled code does
-    (entries `p*.bin`).
+    (entries `p*.bin`). `compile_later` compiles such a program in a worker
+    process on an idle core while the caller's tier goes on (the compact
+    program), and names the entry by the call's pre-key.
 
 Finding a `cached_call` entry by its lowered text costs the tracing and lowering of
 the whole program (seconds for a sweep). A later process finds it without them, by
@@ -81,6 +83,7 @@ import os
 import pickle
 import re
 import sys
+import threading
 import weakref
 
 import jax
@@ -306,6 +309,135 @@ def available(jitted, options, *args, n_static=0, origin=None) -> bool:
     return linked is not None and os.path.exists(_path(linked[0]))
 
 
+# ------------------------------------------------------------ compiled later
+
+
+class _Later:
+    """One program of `cached_call` compiled by `compile_later`: `state` is
+    "running", "done" (on disk, named by its pre-key) or "failed"."""
+
+    def __init__(self):
+        self.state = "running"
+        self.worker = None
+        self.thread = None
+
+    def stop(self):
+        """Kills the worker and waits for the thread (what remains of it after the
+        kill is short: the end of an export, or noticing the worker died)."""
+        worker = self.worker
+        if worker is not None and worker.poll() is None:
+            worker.kill()
+        if self.thread is not None:
+            self.thread.join(timeout=60)
+
+
+# Programs compiled later, by pre-key (one at a time in a process).
+_LATER: dict = {}
+_LATER_LOCK = threading.Lock()
+
+
+def later_state(jitted, options, *args, n_static=0, origin=None) -> str | None:
+    """The state of `compile_later`'s job for this `cached_call` (`_Later`), or
+    None where none was started."""
+    prekey = _call_prekey(jitted, options, args, n_static, origin)
+    job = None if prekey is None else _LATER.get(prekey)
+    return None if job is None else job.state
+
+
+def compile_later(
+    plain, jitted, options, *args, n_static=0, origin=None, out_tree=None
+) -> str | None:
+    """Starts compiling the program of `cached_call(jitted, options, *args, ...)`
+    in a process of its own (`lagrax._cache.apart`), on a core this process leaves
+    idle, while this process goes on (a tier that runs the call meanwhile, the
+    compact program); the executable is written to disk and named by the call's
+    pre-key, so that `available` turns True and `cached_call` loads it, here and in
+    later processes. `plain`: a function of the dynamic arguments (`args[n_static:]`)
+    computing the same program, without compile options. Returns the job's state
+    (`_Later`), or None where none is started: the disk cache off, no pre-key, a
+    process that may use one core (or as many as it has CPU devices), JAX's
+    persistent cache in use, `LAGRAX_BACKGROUND=0`, or another job running. A job
+    still running when the process exits is stopped (its worker killed)."""
+    if os.environ.get("LAGRAX_BACKGROUND", "1").strip() == "0":
+        return None
+    if not applies() or cache_dir() is None or _jax_cache_in_use():
+        return None
+    if _usable_cores() <= jax.local_device_count():
+        return None
+    prekey = _call_prekey(jitted, options, args, n_static, origin)
+    if prekey is None:
+        return None
+    with _LATER_LOCK:
+        if prekey in _LATER:
+            return _LATER[prekey].state
+        if any(job.state == "running" for job in _LATER.values()):
+            return None
+        if not _LATER:
+            import atexit
+
+            atexit.register(_stop_later)
+        job = _LATER[prekey] = _Later()
+    dynamic = args[n_static:]
+    job.thread = threading.Thread(
+        target=_compile_later,
+        args=(job, prekey, plain, options, dynamic, out_tree),
+        name="lagrax-compile-later",
+        daemon=True,
+    )
+    job.thread.start()
+    return job.state
+
+
+def _usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # (no affinity here: the machine's count)
+        return os.cpu_count() or 1
+
+
+def _call_prekey(jitted, options, args, n_static, origin):
+    static, dynamic = args[:n_static], args[n_static:]
+    leaves, treedef = jax.tree.flatten(dynamic)
+    return _prekey(jitted, origin, options, static, leaves, treedef)
+
+
+def _compile_later(job, prekey, plain, options, dynamic, out_tree):
+    """The thread of a `compile_later` job: the program exported here (traced and
+    lowered: the Python part, while the caller's thread runs compiled code), compiled
+    by the worker, loaded once to check what it calls, written, then named by the
+    pre-key (with its output structure, where the caller does not give it)."""
+    try:
+        started = lambda worker: setattr(job, "worker", worker)
+        payload = apart.compile_apart(plain, options or {}, dynamic, started)
+        if payload is None:
+            raise RuntimeError("not compiled")
+        in_tree = jax.tree.structure((dynamic, {}))
+        found = jax.tree.structure(jax.eval_shape(plain, *dynamic))
+        if out_tree is None:
+            if pickle.loads(pickle.dumps(found)) != found:
+                raise RuntimeError("an output structure that does not pickle")
+            linked = found
+        elif out_tree == found:
+            linked = None  # (the caller's, given at every call)
+        else:
+            raise RuntimeError("another output structure")
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, found)
+        key = "p" + hashlib.sha256(f"later {prekey}".encode()).hexdigest()
+        _write(key, payload, _kernels(compiled))
+        if not os.path.exists(_path(key)):
+            raise RuntimeError("not written")
+        _folder.write(_path(prekey, ".key"), pickle.dumps((key, linked)))
+        STATS["compiled later"] += 1
+        job.state = "done"
+    except Exception:  # noqa: BLE001 -- the caller's tiers go on as before
+        job.state = "failed"
+
+
+def _stop_later():
+    for job in list(_LATER.values()):
+        job.stop()
+
+
 class _Found:
     """The executable of one program of `cached_call`: by its pre-key (no tracing),
     else by its lowered text; or compiled."""
@@ -450,6 +582,9 @@ def _versions():
 # The environment variables a program may depend on (read by JAX, XLA, equinox, and
 # the library).
 _VARIABLES = ("JAX_", "XLA_", "EQX_", "LAGRAX_", "TF_")
+# The library's variables that say where programs are kept or compiled, not what
+# they are.
+_NOT_SETTINGS = ("LAGRAX_CACHE_DIR", "LAGRAX_BACKGROUND")
 
 
 def _settings():
@@ -464,7 +599,7 @@ def _settings():
     variables = {
         k: v
         for k, v in os.environ.items()
-        if k.startswith(_VARIABLES) and k != "LAGRAX_CACHE_DIR"
+        if k.startswith(_VARIABLES) and k not in _NOT_SETTINGS
     }
     options = {k: v for k, v in jax.config.values.items() if not _cache_option(k)}
     return faithful.text((options, list(context), variables))

@@ -306,9 +306,16 @@ def _eager(L_c, cfg, devices, q, order, args):
     kind = "sweep" if n > 1 else "period"
     plan = None
     if tier.always() or not executables.available(*call, origin=origin):
-        plan = tier.plan(L_c, args[0], cfg.stepper, (cfg, devices), n, q.dtype, kind)
+        waiting = executables.later_state(*call, origin=origin) == "running"
+        plan = tier.plan(
+            L_c, args[0], cfg.stepper, (cfg, devices), n, q.dtype, kind, waiting
+        )
     if plan is None:
         return specialized()
+    if not tier.always() and plan.repeated():
+        # A job that repeats: where a core is idle, the specialized program compiles
+        # there meanwhile, and takes over once on disk.
+        executables.compile_later(jitted, *call, origin=origin, out_tree=_OUT_TREE)
     m = dataclasses.replace(cfg, stepper=plan.stepper)
     # (With XLA's elemental CPU emitters: the compact program, loops over the
     # tape's blocks, compiles faster.)

@@ -12,7 +12,11 @@ taken, like a JIT's first tier, for a Lagrangian's first eager sweeps, until the
 time spent there with one Lagrangian and configuration, with the sweep at hand,
 would reach the specialized compile's (a ski rental: the work repays the
 compile), and then the specialized program takes over. A sweep whose specialized
-program is compiled, or on disk, takes it at once.
+program is compiled, or on disk, takes it at once. Where the process leaves a core
+idle, a Lagrangian's second compact sweep instead starts the specialized compile
+in a worker process there (`executables.compile_later`): the compact program runs
+the sweeps meanwhile, without the rental, and the specialized one takes over once
+on disk.
 
 Taken only where nothing is traced (eager calls, and the forward passes of an
 eager `jax.grad`: under a caller's `jit` the program being compiled is the
@@ -23,6 +27,7 @@ program's to rounding, with the same statuses and error estimates.
 
 `LAGRAX_COMPACT`: "1" or unset (the tiers above), "0" (the specialized program
 only), "2" (the compact one wherever it applies: benchmarks, tests).
+`LAGRAX_BACKGROUND=0`: no compile in a worker process (the rental only).
 """
 
 import collections
@@ -188,6 +193,11 @@ class Plan:
         self.L, self.consts, self.stepper, self._count = L_t, consts, stepper, count
         self._start = time.perf_counter()
 
+    def repeated(self) -> bool:
+        """Whether the compact program has run with this Lagrangian and
+        configuration before (a job that repeats)."""
+        return _SPENT[self._count] > 0
+
     def start(self):
         self._start = time.perf_counter()
 
@@ -199,16 +209,17 @@ class Plan:
         _RATE[kind] = spent / max(n, 1)
 
 
-def plan(L_c, consts, stepper, key, n, dtype, kind="sweep"):
+def plan(L_c, consts, stepper, key, n, dtype, kind="sweep", waiting=False):
     """The compact tier's `Plan` for this call, or None where the specialized
     program runs it (module docstring). `key`: the configuration, for the time
     spent with it; `n`: the amplitudes of the call; `kind`: which specialized
     compile it saves (`COMPILE_S`), whose last measured time per amplitude
-    predicts this call's."""
+    predicts this call's; `waiting`: the specialized program is being compiled in
+    another process (`executables.compile_later`), so no ski rental."""
     if not applies(stepper) or not _concrete(consts):
         return None
     count = (L_c, key, kind)
-    if _compact_mode() != "2":
+    if _compact_mode() != "2" and not waiting:
         predicted = n * _RATE.get(kind, _RATE_PRIOR)
         if _SPENT[count] + predicted >= COMPILE_S[kind]:
             return None

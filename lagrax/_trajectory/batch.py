@@ -418,6 +418,12 @@ def _compiled(cpu, devices):
     return jitted
 
 
+def _plain(cfg, shape, cpu, devices):
+    """`_compiled(cpu, devices)`'s program, its static arguments bound, without
+    compile options (`executables.compile_later` exports it)."""
+    return jax.jit(lambda *args: _assemble(*shape, *_looped(devices)(cfg, *args)))
+
+
 @functools.cache
 def _compact_program(cfg, shape, cpu, devices):
     """`_compiled` for the compact tier, its static arguments bound: the program
@@ -683,7 +689,9 @@ _OUT_TREE = jax.tree.structure((0,) * 7)  # (`_assemble`'s outputs)
 # compile is short (`_COMPACT_FROM`); otherwise the compact one, until the time
 # spent on it with this Lagrangian and configuration reaches the specialized
 # compile's (a ski rental: never more than twice the better of the two choices
-# made with hindsight), as a JIT's first tier.
+# made with hindsight), as a JIT's first tier. Where the process leaves a core idle,
+# the second call compiles the specialized program in a worker process there
+# instead (`executables.compile_later`), which takes over once on disk.
 
 # Estimated specialized compiles shorter than this (s) are not worth a tier.
 _COMPACT_FROM = 8.0
@@ -713,7 +721,18 @@ def _tiered(call, origin, n, dtype):
         return specialized()
     tape, nodes = found
     estimate = _compile_estimate(nodes, cfg.order)
-    if not only and (estimate < _COMPACT_FROM or _SPENT[cfg] >= estimate):
+    if not only and estimate < _COMPACT_FROM:
+        return specialized()
+    # From the second call with this configuration (a job that repeats), where a
+    # core is idle, the specialized program compiles there meanwhile and takes over
+    # once on disk; else, the ski rental.
+    later = None
+    if not only and _SPENT[cfg] > 0:
+        later = executables.compile_later(
+            _plain(cfg, shape, *origin[1:]), jitted, options, cfg, shape, *args,
+            n_static=2, origin=origin,
+        )  # fmt: skip
+    if not only and later != "running" and _SPENT[cfg] >= estimate:
         _notify(cfg, estimate)
         return specialized()
     # (At most 128 lanes on the compact program: a lane group's histories, which
