@@ -357,3 +357,24 @@ def test_nothing_is_compiled_later_without_an_idle_core(cache, monkeypatch):
     monkeypatch.setenv("LAGRAX_CACHE_DIR", "")
     assert start() is None
     assert executables._LATER == {}
+
+
+def test_a_caller_context_the_job_cannot_see_compiles_nothing_later(cache, monkeypatch):
+    """A thread traces under JAX's global settings: under a context manager of the
+    caller's that enters the program (here the default matmul precision), the job
+    refuses rather than name another program by the caller's pre-key."""
+    from lagrax._trajectory import batch
+
+    monkeypatch.setattr(executables, "_LATER", {})
+    monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
+    (jitted, options, cfg, shape, *rest), kwargs, _, _ = _batch_call(monkeypatch)
+    plain = batch._plain(cfg, shape, *kwargs["origin"][1:])
+    with jax.default_matmul_precision("highest"):
+        state = executables.compile_later(
+            plain, jitted, options, cfg, shape, *rest, **kwargs
+        )
+    assert state in ("running", "failed")  # (it fails at once)
+    ((job),) = executables._LATER.values()
+    job.thread.join(timeout=300)
+    assert job.state == "failed" and job.worker is None
+    assert not any(cache[0].iterdir())

@@ -377,10 +377,9 @@ def compile_later(
 
             atexit.register(_stop_later)
         job = _LATER[prekey] = _Later()
-    dynamic = args[n_static:]
     job.thread = threading.Thread(
         target=_compile_later,
-        args=(job, prekey, plain, options, dynamic, out_tree),
+        args=(job, prekey, plain, (jitted, options, args, n_static, origin), out_tree),
         name="lagrax-compile-later",
         daemon=True,
     )
@@ -401,12 +400,19 @@ def _call_prekey(jitted, options, args, n_static, origin):
     return _prekey(jitted, origin, options, static, leaves, treedef)
 
 
-def _compile_later(job, prekey, plain, options, dynamic, out_tree):
+def _compile_later(job, prekey, plain, call, out_tree):
     """The thread of a `compile_later` job: the program exported here (traced and
     lowered: the Python part, while the caller's thread runs compiled code), compiled
     by the worker, loaded once to check what it calls, written, then named by the
-    pre-key (with its output structure, where the caller does not give it)."""
+    pre-key (with its output structure, where the caller does not give it). `call`:
+    `(jitted, options, args, n_static, origin)`."""
+    jitted, options, args, n_static, origin = call
+    dynamic = args[n_static:]
     try:
+        # (A thread traces under JAX's global settings, not the caller's context
+        # managers: where those enter the program, the pre-keys differ.)
+        if _call_prekey(jitted, options, args, n_static, origin) != prekey:
+            raise RuntimeError("another trace context")
         started = lambda worker: setattr(job, "worker", worker)
         payload = apart.compile_apart(plain, options or {}, dynamic, started)
         if payload is None:
