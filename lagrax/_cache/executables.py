@@ -178,9 +178,10 @@ def program(fun, options=None):
     its loops across threads in this process, `call` compiles it in a process of its
     own that does not (`lagrax._cache.apart`), from `fun` itself (a jitted function
     with compile options cannot be called inside another). Worth a second more of
-    compile for a program of many short loops run often (`simulate_batch`'s compact
-    one), not for the period sweep's (`benchmarks/README.md`), nor for `cached_call`'s
-    programs, compiled per Lagrangian."""
+    compile for a program of many short loops run often and compiled once per
+    machine (the compact tiers': on an idle second core its split loops gain
+    little, on a busy one they wait), not for `cached_call`'s programs, compiled
+    per Lagrangian."""
     jitted = jax.jit(fun, compiler_options=options)
     # (`jax.jit(fun)`, called inside the exported program, finds `fun`'s trace.)
     _PLAIN[jitted] = (jax.jit(fun), dict(options or {}))

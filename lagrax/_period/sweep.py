@@ -460,10 +460,13 @@ def _sweep_jit(L, m, devices, elemental=False):
     """`_sweep_body` compiled for one Lagrangian, method and device set: a plain
     `jax.jit` (its C++ dispatch), not `eqx.filter_jit`, whose Python-side flattening
     and hashing of the static arguments cost a noticeable part of a sweep."""
-    options = elemental_options() if elemental else None
-    return jax.jit(
-        functools.partial(_sweep_body, L, m, devices), compiler_options=options
-    )
+    body = functools.partial(_sweep_body, L, m, devices)
+    if elemental:
+        # (`executables.program`: the compact tier's, which `executables.call`
+        # compiles where XLA keeps its loops whole, so that a busy second core, e.g.
+        # compiling the specialized program, does not hold up its loops' parts.)
+        return executables.program(body, elemental_options())
+    return jax.jit(body)
 
 
 def _sweep_body(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol):
