@@ -340,6 +340,8 @@ _LATER_LOCK = threading.Lock()
 def later_state(jitted, options, *args, n_static=0, origin=None) -> str | None:
     """The state of `compile_later`'s job for this `cached_call` (`_Later`), or
     None where none was started."""
+    if not _LATER:  # (the pre-key costs a faithful text of the call: skipped)
+        return None
     prekey = _call_prekey(jitted, options, args, n_static, origin)
     job = None if prekey is None else _LATER.get(prekey)
     return None if job is None else job.state
