@@ -303,3 +303,43 @@ def test_a_repeated_sweep_takes_the_specialized_program_compiled_later(
     assert not ran and loads[-1] is True
     np.testing.assert_allclose(third.periods, first.periods, rtol=1e-14, atol=0)
     np.testing.assert_array_equal(third.status, first.status)
+
+
+@pytest.mark.slow
+def test_a_repeated_gradient_takes_the_specialized_program_compiled_later(
+    monkeypatch, compact_cache
+):
+    """As for a sweep: a repeated `jax.grad` of a sweep (the forward jacobian's
+    program) is taken over by its specialized program, compiled later."""
+    folder, loads, _ = compact_cache
+    for name, empty in (("_COMPILED", collections.Counter()), ("_NOTIFIED", set())):
+        monkeypatch.setattr(tier, name, empty)
+    monkeypatch.setattr(tier, "_SPENT", collections.Counter())
+    monkeypatch.setattr(tier, "_RATE", {})
+    monkeypatch.setattr(executables, "_LATER", {})
+    monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
+    monkeypatch.setenv("LAGRAX_COMPACT", "1")
+    tier.several_lagrangians("jacobian")
+    q0 = jnp.linspace(0.1, 2.0, 32)
+
+    def mean_period(g):
+        L = lambda q, qd, t: 0.5 * qd[0] ** 2 + g * jnp.cos(q[0])
+        return jnp.mean(lagrax.sweep_periods(L, q0).periods)
+
+    grad = jax.grad(mean_period)
+    with pytest.warns(UserWarning, match="once per machine"):
+        first = grad(1.3)
+    grad(1.3)  # (the first that ran a compiled program)
+    assert executables._LATER == {}
+    grad(1.3)
+    ((job),) = executables._LATER.values()
+    job.thread.join(timeout=600)
+    assert job.state == "done"
+    ran = []
+    monkeypatch.setattr(tier.Compact, "run", lambda *a: ran.append(a))
+    third = grad(1.3)
+    assert not ran and loads[-1] is True
+    np.testing.assert_allclose(third, first, rtol=1e-12)
+    # d/dg of the mean period of g: -T/(2g) for each amplitude.
+    exact = -np.mean(pendulum.period(np.asarray(q0), g=1.3)) / (2 * 1.3)
+    np.testing.assert_allclose(third, exact, rtol=1e-10)

@@ -414,9 +414,17 @@ def _jacobian(L, m, devices, elemental, order, rest, q0, consts, with_q, wanted)
     n = q0.shape[0]
     plan = None
     if tier.always() or not executables.available(*call, origin=origin):
-        plan = tier.plan(L, consts, m.stepper, (m, devices), n, q0.dtype, "jacobian")
+        waiting = executables.later_state(*call, origin=origin) == "running"
+        plan = tier.plan(
+            L, consts, m.stepper, (m, devices), n, q0.dtype, "jacobian", waiting
+        )
     if plan is None:
         return specialized()
+    if not tier.always() and plan.repeated():  # (as `_eager`'s)
+        plain = _jacobian_jit(L, m, devices, False, with_q, wanted)
+        executables.compile_later(
+            plain, *call, origin=origin, out_tree=_JACOBIAN_OUT_TREE
+        )
     m_t = dataclasses.replace(m, stepper=plan.stepper)
     # (The tapes are constants; the parameters padded beyond the Lagrangian's are
     # not differentiated: the same directions.)
