@@ -21,6 +21,11 @@ atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], ignore_errors=True)
 # path start processes with a pool of two.
 os.environ.setdefault("PJRT_NPROC", "1")
 
+# No specialized program compiled later in a worker process (`executables.
+# compile_later`) but where a test asks for it: it would change which tier a later
+# call of a test takes.
+os.environ["LAGRAX_BACKGROUND"] = "0"
+
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 

@@ -216,7 +216,7 @@ else:
 
 
 def _later(tmp_path, mode, cache):
-    env = dict(os.environ, PYTHONFAULTHANDLER="1")
+    env = dict(os.environ, PYTHONFAULTHANDLER="1", LAGRAX_BACKGROUND="1")
     env["LAGRAX_CACHE_DIR"] = str(cache) if mode == "load" else ""
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
     proc = subprocess.run(

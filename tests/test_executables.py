@@ -316,6 +316,7 @@ def test_a_program_compiled_later_is_loaded_in_its_place(cache, monkeypatch):
     monkeypatch.setattr(executables, "_LATER", {})
     monkeypatch.setattr(executables, "STATS", collections.Counter())
     monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
+    monkeypatch.setenv("LAGRAX_BACKGROUND", "1")
     (jitted, options, cfg, shape, *rest), kwargs, run, here = _batch_call(monkeypatch)
     assert not executables.available(jitted, options, cfg, shape, *rest, **kwargs)
     plain = batch._plain(cfg, shape, *kwargs["origin"][1:])
@@ -343,6 +344,7 @@ def test_nothing_is_compiled_later_without_an_idle_core(cache, monkeypatch):
     from lagrax._trajectory import batch
 
     monkeypatch.setattr(executables, "_LATER", {})
+    monkeypatch.setenv("LAGRAX_BACKGROUND", "1")
     (jitted, options, cfg, shape, *rest), kwargs, _, _ = _batch_call(monkeypatch)
     plain = batch._plain(cfg, shape, *kwargs["origin"][1:])
     start = lambda: executables.compile_later(
@@ -367,6 +369,7 @@ def test_a_caller_context_the_job_cannot_see_compiles_nothing_later(cache, monke
 
     monkeypatch.setattr(executables, "_LATER", {})
     monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
+    monkeypatch.setenv("LAGRAX_BACKGROUND", "1")
     (jitted, options, cfg, shape, *rest), kwargs, _, _ = _batch_call(monkeypatch)
     plain = batch._plain(cfg, shape, *kwargs["origin"][1:])
     with jax.default_matmul_precision("highest"):
