@@ -63,10 +63,9 @@ def _lane_end(mech, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e
     dtype = r.q0.dtype
     eps = jnp.finfo(dtype).eps
     q0, M0, a0s, Qs, tau = r.q0, r.M0, r.a0s, r.Qs, r.tau
-    q_end, qdot_end, t_end = q0 + Qs * x_e, (Qs / tau) * v_e, tau * s_e
-    (h0, size0), ((_, (M_end, ok_end)), (h1, size1)) = mech.rest_and_end(
-        q0, q_end, qdot_end, t_end
-    )
+    q_end, qdot_end = q0 + Qs * x_e, (Qs / tau) * v_e
+    leg = mech.leg_end(r, s_e, x_e, v_e)
+    (h0, size0), ((_, (M_end, ok_end)), (h1, size1)), a_e, jerk = leg
     scale = jnp.abs(M0 * a0s) * Qs
     tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
     allowed = tol * scale + 1024 * eps * (size0 + size1)
@@ -79,7 +78,6 @@ def _lane_end(mech, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e
         tau * ph, tau * J, tau * F / Qs, jnp.where(const_mass, G, jnp.inf)
     )
     status = _status(raw, r, drifted, ok_end, h1)
-    a_e, jerk = mech.end_accel_and_jerk(r, s_e, x_e, v_e)
     g = Event(kind, sigma, (target - q0) / Qs).value(x_e, v_e, a_e)
     ends = (status.astype(jnp.int32), q_end, qdot_end, a_e, g, jerk)
     return ends, terms

@@ -102,6 +102,13 @@ class AutodiffMechanics(eqx.Module):
         a = self.end_accel(r, s, x, v)
         return a, self.end_jerk(r, s, x, v, a)
 
+    def leg_end(self, r, s, x, v):
+        """`rest_and_end` at the release point and the end `(s, x, v)` of a lane's leg
+        (its units, `r`: its `Release`), with `end_accel_and_jerk` there."""
+        q_end, qdot_end, t_end = r.q0 + r.Qs * x, (r.Qs / r.tau) * v, r.tau * s
+        start, end = self.rest_and_end(r.q0, q_end, qdot_end, t_end)
+        return start, end, *self.end_accel_and_jerk(r, s, x, v)
+
     def end_accels(self, r, points):
         """`end_accel` at several points `(s, x, v)`."""
         return [self.end_accel(r, *p) for p in points]
@@ -253,6 +260,22 @@ class CompactMechanics(eqx.Module):
 
     def end_jerk(self, r, s, x, v, a):
         return self._end(r, s, x, v)[JERK] * r.tau**3 / r.Qs
+
+    def leg_end(self, r, s, x, v):
+        """From one evaluation at the two points (the end's acceleration and jerk from
+        the same outputs as its energy)."""
+        zero = jnp.zeros((), r.q0.dtype)
+        out = self._points(
+            jnp.stack([zero, r.tau * s]),
+            jnp.stack([r.q0, r.q0 + r.Qs * x]),
+            jnp.stack([zero, r.Qs / r.tau * v]),
+        )
+        start, end = out[:, 0], out[:, 1]
+        accel = (end[QDDOT][None], (end[MASS][None, None], end[OK] != 0))
+        a = end[QDDOT] * r.tau**2 / r.Qs
+        jerk = end[JERK] * r.tau**3 / r.Qs
+        start, end = (start[ENERGY], start[SCALE]), (accel, (end[ENERGY], end[SCALE]))
+        return start, end, a, jerk
 
     def end_accels(self, r, points):
         s, x, v = (jnp.stack(p) for p in zip(*points))
