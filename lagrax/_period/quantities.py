@@ -113,6 +113,11 @@ class AutodiffMechanics(eqx.Module):
         """`end_accel` at several points `(s, x, v)`."""
         return [self.end_accel(r, *p) for p in points]
 
+    def leg_ends(self, r, s, x, v, central_points):
+        """Over lanes: each lane's `leg_end`, and None (`finish` takes the jerk by
+        central differences, `central_points`, with `end_accels` where needed)."""
+        return jax.vmap(self.leg_end)(r, s, x, v), None
+
     def scaled_acceleration(self, fuse=None):
         """The acceleration in a lane's own units: `accel(q0, Qs, tau, s, x, v)`."""
 
@@ -261,21 +266,48 @@ class CompactMechanics(eqx.Module):
     def end_jerk(self, r, s, x, v, a):
         return self._end(r, s, x, v)[JERK] * r.tau**3 / r.Qs
 
-    def leg_end(self, r, s, x, v):
-        """From one evaluation at the two points (the end's acceleration and jerk from
-        the same outputs as its energy)."""
-        zero = jnp.zeros((), r.q0.dtype)
-        out = self._points(
+    def leg_ends(self, r, s, x, v, central_points):
+        """Over lanes: each lane's `leg_end`, and the accelerations in its units at the
+        points `central_points(s, x, v, a)` (a: the acceleration at the end) where
+        some lane's jerk is not finite (the central difference's), from one
+        evaluation site: a loop of one iteration, or two."""
+        zero = jnp.zeros_like(s)
+        tau, Qs = r.tau[None], r.Qs[None]
+        at = lambda s, x, v: (tau * s, r.q0[None] + Qs * x, Qs / tau * v)
+        # (At rest at the release point, and the end, as `leg_end`.)
+        first = (
             jnp.stack([zero, r.tau * s]),
             jnp.stack([r.q0, r.q0 + r.Qs * x]),
             jnp.stack([zero, r.Qs / r.tau * v]),
         )
-        start, end = out[:, 0], out[:, 1]
-        accel = (end[QDDOT][None], (end[MASS][None, None], end[OK] != 0))
-        a = end[QDDOT] * r.tau**2 / r.Qs
-        jerk = end[JERK] * r.tau**3 / r.Qs
-        start, end = (start[ENERGY], start[SCALE]), (accel, (end[ENERGY], end[SCALE]))
-        return start, end, a, jerk
+
+        def end_of(out):
+            end = out[:, 1]
+            return end[QDDOT] * r.tau**2 / r.Qs, end[JERK] * r.tau**3 / r.Qs
+
+        def body(c):
+            i, points, outs, _, _ = c
+            out = self._points(*points)
+            outs = jnp.where(i == 0, out, outs)
+            a, jerk = end_of(outs)
+            central = central_points(s, x, v, a)
+            points = at(*(jnp.stack(p) for p in zip(*central)))
+            return i + 1, points, outs, out, jnp.any(~jnp.isfinite(jerk))
+
+        blank = jnp.zeros((len(POINT), 2) + s.shape, s.dtype)
+        init = (jnp.zeros((), jnp.int32), first, blank, blank, jnp.zeros((), bool))
+        run = lambda c: (c[0] == 0) | ((c[0] == 1) & c[4])
+        _, _, outs, last, _ = jax.lax.while_loop(run, body, init)
+        start, end = outs[:, 0], outs[:, 1]
+        accel = (end[QDDOT][:, None], (end[MASS][:, None, None], end[OK] != 0))
+        a, jerk = end_of(outs)
+        legs = (
+            (start[ENERGY], start[SCALE]),
+            (accel, (end[ENERGY], end[SCALE])),
+            a,
+            jerk,
+        )
+        return legs, list(last[QDDOT] * tau**2 / Qs)
 
     def end_accels(self, r, points):
         s, x, v = (jnp.stack(p) for p in zip(*points))
