@@ -175,6 +175,45 @@ def test_the_compact_leg_ends_give_what_autodiff_gives():
     np.testing.assert_allclose(accels[1][1], central[1][1], rtol=1e-13, atol=1e-300)
 
 
+def test_the_compact_far_turning_point_gives_what_autodiff_gives():
+    # The compact tier finds the far turning point in one loop (one evaluation site
+    # of the tape), the root's tangent by the implicit function (a custom JVP): the
+    # asymmetric well V = k q²/2 + a q³/3, released at rest at q0 < 0, both in q0
+    # and in k.
+    from lagrax._period.far_turning_point import far_turning_point
+
+    dtype = jnp.float64
+    q0, q_m = jnp.array([-0.3, -0.8, jnp.nan], dtype), jnp.zeros(3, dtype)
+
+    def roots(k, q0, compact):
+        L_c, consts = canonical_lagrangian(asymmetric_well.lagrangian(k=k), dtype)
+        if not compact:
+            return far_turning_point(L_c, consts, q0, q_m)
+        L_t, tapes = tier.tapes_of(L_c, consts, dtype)
+        params = [jnp.asarray(c, dtype).reshape(()) for c in consts]
+        params += [jnp.zeros((), dtype)] * (L_t.n_params - len(params))
+        return far_turning_point(L_t, [tapes, *params], q0, q_m)
+
+    want, got = roots(1.0, q0, False), roots(1.0, q0, True)
+    assert np.all(np.asarray(want.found) == [True, True, False])
+    np.testing.assert_array_equal(got.found, want.found)
+    np.testing.assert_array_equal(got.in_range, want.in_range)
+    np.testing.assert_allclose(got.q1[:2], want.q1[:2], rtol=1e-14)
+    np.testing.assert_allclose(got.band[:2], want.band[:2], rtol=0.5)
+    assert np.all(np.asarray(got.band[:2]) > 0)
+    # dq1/dq0 = V'(q0)/V'(q1); dq1/dk = -(q1² - q0²)/2 / V'(q1).
+    dV = lambda q: q + q**2
+    q1 = np.asarray(want.q1[:2])
+    for compact in (False, True):
+        tangent = lambda k, q: jax.jvp(
+            lambda k, q: roots(k, q, compact).q1, (k, q), (0.0 * k, jnp.ones(3))
+        )[1]
+        np.testing.assert_allclose(tangent(1.0, q0)[:2], dV(q0[:2]) / dV(q1), 1e-10)
+        dk = jax.jvp(lambda k: roots(k, q0, compact).q1, (1.0,), (1.0,))[1]
+        want_dk = -0.5 * (q1**2 - np.asarray(q0[:2]) ** 2) / dV(q1)
+        np.testing.assert_allclose(dk[:2], want_dk, rtol=1e-10)
+
+
 def test_the_tier_rule(monkeypatch, tmp_path):
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(tier, "_SPENT", collections.Counter())
