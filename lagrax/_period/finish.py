@@ -59,7 +59,8 @@ def _status(raw, r, drifted, ok_end, h1):
 def _lane_end(energy_tol, r, leg, target, kind, rtol, sigma, raw, s_e, x_e, v_e, *ss):
     """One lane: its status (a leg whose energy drifted beyond `energy_tol` fails,
     whatever the solver said), end state, the event function there and its jerk,
-    and the error bound's sums in time units (`leg`: `Mechanics.leg_end`)."""
+    and the error bound's sums in time units. `leg`: what `AutodiffMechanics.leg_end`
+    gives."""
     dtype = r.q0.dtype
     eps = jnp.finfo(dtype).eps
     q0, M0, a0s, Qs, tau = r.q0, r.M0, r.a0s, r.Qs, r.tau

@@ -16,7 +16,7 @@ with its slope. `mechanics(L, consts)` gives them:
   traced by JAX's autodiff before the tape is built.
 
 Each method works on one lane (scalars, or `(1,)` for coordinates) and is vmapped by
-its caller, except `lane_field_accel`, over lanes.
+its caller, except `lane_field_accel` and `leg_ends`, over lanes.
 """
 
 import equinox as eqx
@@ -267,10 +267,10 @@ class CompactMechanics(eqx.Module):
         return self._end(r, s, x, v)[JERK] * r.tau**3 / r.Qs
 
     def leg_ends(self, r, s, x, v, central_points):
-        """Over lanes: each lane's `leg_end`, and the accelerations in its units at the
-        points `central_points(s, x, v, a)` (a: the acceleration at the end) where
-        some lane's jerk is not finite (the central difference's), from one
-        evaluation site: a loop of one iteration, or two."""
+        """Over lanes: each lane's `AutodiffMechanics.leg_end`, and the accelerations in
+        its units at the points `central_points(s, x, v, a)` (a: the acceleration at
+        the end) where some lane's jerk is not finite (the central difference's),
+        from one evaluation site: a loop of one iteration, or two."""
         zero = jnp.zeros_like(s)
         tau, Qs = r.tau[None], r.Qs[None]
         at = lambda s, x, v: (tau * s, r.q0[None] + Qs * x, Qs / tau * v)
