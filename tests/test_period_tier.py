@@ -128,6 +128,92 @@ def test_the_compact_tapes_give_what_autodiff_gives():
     assert len(sizes) == 1
 
 
+def test_the_compact_leg_ends_give_what_autodiff_gives():
+    # `leg_ends` evaluates the point tape at one site for the ends of the legs and,
+    # where a jerk is not finite (V = (1 + q)^1.5 has V'' infinite at -1: the middle
+    # lane ends there, at rest), for the central difference's accelerations too.
+    from lagrax._period.finish import _central_points
+
+    dtype = jnp.float64
+    L = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - (1.0 + q[0]) ** 1.5
+    L_c, consts = canonical_lagrangian(L, dtype)
+    L_t, tapes = tier.tapes_of(L_c, consts, dtype)
+    params = [jnp.asarray(c, dtype).reshape(()) for c in consts]
+    params += [jnp.zeros((), dtype)] * (L_t.n_params - len(params))
+    q0 = jnp.array([0.3, 0.5, -1.1], dtype)
+    rel = Release(
+        q0, q0 > -2, q0 > -2, q0 > -2, q0 > -2, jnp.ones_like(q0), -jnp.ones_like(q0),
+        jnp.ones_like(q0), 1.3 + 0 * q0, -jnp.ones_like(q0),
+    )  # fmt: skip
+    s, x, v = (
+        jnp.array([0.2, 0.7, 1.1]),
+        jnp.array([-0.1, -1.5, 0.4]),
+        jnp.array([0.3, 0.0, -0.6]),
+    )
+
+    @jax.jit
+    def both(rel, s, x, v):
+        compact = CompactMechanics(L_t, [tapes, *params])
+        autodiff = AutodiffMechanics(L_c, list(consts))
+        got, accels = compact.leg_ends(rel, s, x, v, _central_points)
+        want, none = autodiff.leg_ends(rel, s, x, v, _central_points)
+        central = lambda r, *p: autodiff.end_accels(r, _central_points(*p))
+        return got, accels, want, none, jax.vmap(central)(rel, s, x, v, want[2])
+
+    got, accels, want, none, central = both(rel, s, x, v)
+    assert none is None
+    jerk = np.asarray(want[3])
+    assert not np.isfinite(jerk[1]) and np.all(np.isfinite(jerk[[0, 2]]))
+    assert not np.isfinite(got[3][1])
+    finite = lambda a: np.where(np.isfinite(a), a, 0.0)
+    jax.tree.map(
+        lambda a, b: np.testing.assert_allclose(finite(a), finite(b), rtol=1e-13),
+        got, want
+    )  # fmt: skip
+    # (Both accelerations vanish there: a central jerk of zero.)
+    np.testing.assert_allclose(accels[0][1], central[0][1], rtol=1e-13, atol=1e-300)
+    np.testing.assert_allclose(accels[1][1], central[1][1], rtol=1e-13, atol=1e-300)
+
+
+def test_the_compact_far_turning_point_gives_what_autodiff_gives():
+    # The compact tier finds the far turning point in one loop (one evaluation site
+    # of the tape), the root's tangent by the implicit function (a custom JVP): the
+    # asymmetric well V = k q²/2 + a q³/3, released at rest at q0 < 0, both in q0
+    # and in k.
+    from lagrax._period.far_turning_point import far_turning_point
+
+    dtype = jnp.float64
+    q0, q_m = jnp.array([-0.3, -0.8, jnp.nan], dtype), jnp.zeros(3, dtype)
+
+    def roots(k, q0, compact):
+        L_c, consts = canonical_lagrangian(asymmetric_well.lagrangian(k=k), dtype)
+        if not compact:
+            return far_turning_point(L_c, consts, q0, q_m)
+        L_t, tapes = tier.tapes_of(L_c, consts, dtype)
+        params = [jnp.asarray(c, dtype).reshape(()) for c in consts]
+        params += [jnp.zeros((), dtype)] * (L_t.n_params - len(params))
+        return far_turning_point(L_t, [tapes, *params], q0, q_m)
+
+    want, got = roots(1.0, q0, False), roots(1.0, q0, True)
+    assert np.all(np.asarray(want.found) == [True, True, False])
+    np.testing.assert_array_equal(got.found, want.found)
+    np.testing.assert_array_equal(got.in_range, want.in_range)
+    np.testing.assert_allclose(got.q1[:2], want.q1[:2], rtol=1e-14)
+    np.testing.assert_allclose(got.band[:2], want.band[:2], rtol=0.5)
+    assert np.all(np.asarray(got.band[:2]) > 0)
+    # dq1/dq0 = V'(q0)/V'(q1); dq1/dk = -(q1² - q0²)/2 / V'(q1).
+    dV = lambda q: q + q**2
+    q1 = np.asarray(want.q1[:2])
+    for compact in (False, True):
+        tangent = lambda k, q: jax.jvp(
+            lambda k, q: roots(k, q, compact).q1, (k, q), (0.0 * k, jnp.ones(3))
+        )[1]
+        np.testing.assert_allclose(tangent(1.0, q0)[:2], dV(q0[:2]) / dV(q1), 1e-10)
+        dk = jax.jvp(lambda k: roots(k, q0, compact).q1, (1.0,), (1.0,))[1]
+        want_dk = -0.5 * (q1**2 - np.asarray(q0[:2]) ** 2) / dV(q1)
+        np.testing.assert_allclose(dk[:2], want_dk, rtol=1e-10)
+
+
 def test_the_tier_rule(monkeypatch, tmp_path):
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(tier, "_SPENT", collections.Counter())

@@ -56,17 +56,16 @@ def _status(raw, r, drifted, ok_end, h1):
     )
 
 
-def _lane_end(mech, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e, *ss):
+def _lane_end(energy_tol, r, leg, target, kind, rtol, sigma, raw, s_e, x_e, v_e, *ss):
     """One lane: its status (a leg whose energy drifted beyond `energy_tol` fails,
     whatever the solver said), end state, the event function there and its jerk,
-    and the error bound's sums in time units."""
+    and the error bound's sums in time units. `leg`: what `AutodiffMechanics.leg_end`
+    gives."""
     dtype = r.q0.dtype
     eps = jnp.finfo(dtype).eps
     q0, M0, a0s, Qs, tau = r.q0, r.M0, r.a0s, r.Qs, r.tau
-    q_end, qdot_end, t_end = q0 + Qs * x_e, (Qs / tau) * v_e, tau * s_e
-    (h0, size0), ((_, (M_end, ok_end)), (h1, size1)) = mech.rest_and_end(
-        q0, q_end, qdot_end, t_end
-    )
+    q_end, qdot_end = q0 + Qs * x_e, (Qs / tau) * v_e
+    (h0, size0), ((_, (M_end, ok_end)), (h1, size1)), a_e, jerk = leg
     scale = jnp.abs(M0 * a0s) * Qs
     tol = jnp.sqrt(rtol) if energy_tol is None else energy_tol
     allowed = tol * scale + 1024 * eps * (size0 + size1)
@@ -79,25 +78,30 @@ def _lane_end(mech, energy_tol, r, target, kind, rtol, sigma, raw, s_e, x_e, v_e
         tau * ph, tau * J, tau * F / Qs, jnp.where(const_mass, G, jnp.inf)
     )
     status = _status(raw, r, drifted, ok_end, h1)
-    a_e, jerk = mech.end_accel_and_jerk(r, s_e, x_e, v_e)
     g = Event(kind, sigma, (target - q0) / Qs).value(x_e, v_e, a_e)
     ends = (status.astype(jnp.int32), q_end, qdot_end, a_e, g, jerk)
     return ends, terms
 
 
-def _central_jerk(mech, r, s_e, x_e, v_e, a_e):
+# The central difference's step along the flow (lane units).
+_CENTRAL = 1e-5
+
+
+def _central_points(s_e, x_e, v_e, a_e):
+    """Where the central difference of `_central_jerk` reads the acceleration."""
+    d = _CENTRAL
+    return [
+        (s_e + d, x_e + v_e * d + 0.5 * a_e * d**2, v_e + a_e * d),
+        (s_e - d, x_e - v_e * d + 0.5 * a_e * d**2, v_e - a_e * d),
+    ]
+
+
+def _central_jerk(ahead, behind):
     """The jerk by a central difference along the flow: where the user's L has a
     removable singularity in a third derivative exactly at the event (x ** p with an
-    array of exponents at x = 0 gives 0 * inf)."""
-    d = 1e-5
-    ahead, behind = mech.end_accels(
-        r,
-        [
-            (s_e + d, x_e + v_e * d + 0.5 * a_e * d**2, v_e + a_e * d),
-            (s_e - d, x_e - v_e * d + 0.5 * a_e * d**2, v_e - a_e * d),
-        ],
-    )
-    return (ahead - behind) / (2 * d)
+    array of exponents at x = 0 gives 0 * inf). `ahead`, `behind`: the
+    accelerations at `_central_points`."""
+    return (ahead - behind) / (2 * _CENTRAL)
 
 
 def _event_time(r, kind, sigma, raw, s_e, v_e, a_e, g, jerk, q_end, qdot_end):
@@ -141,8 +145,11 @@ def finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
     )
     s_e, x_e, v_e = out.s, out.x, out.v
     per_lane = (targets, kinds, rtols, out.sigma, out.raw, s_e, x_e, v_e)
-    one = lambda *a: _lane_end(mech, energy_tol, *a)
-    ends, terms = jax.vmap(one)(rel, *per_lane, *sums)
+    # (The compact tier's quantities from one evaluation site: the central
+    # difference's accelerations `accels` with the ends'.)
+    legs, accels = mech.leg_ends(rel, s_e, x_e, v_e, _central_points)
+    one = lambda *a: _lane_end(energy_tol, *a)
+    ends, terms = jax.vmap(one)(rel, legs, *per_lane, *sums)
     # One fusion for the per-lane outputs, so that L's values at the two ends of the
     # leg (energies, mass, acceleration, jerk) are computed once each, not once per
     # reader (each a libm sine or cosine per lane for the pendulum).
@@ -151,12 +158,15 @@ def finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
     # (The central difference only where some jerk is not finite: two more
     # accelerations per lane otherwise.)
     bad = ~jnp.isfinite(jerk)
-    central = lambda *a: _central_jerk(mech, *a)
-    jerk = jax.lax.cond(
-        jnp.any(bad),
-        lambda: jnp.where(bad, jax.vmap(central)(rel, s_e, x_e, v_e, a_e), jerk),
-        lambda: jerk,
-    )
+    if accels is not None:
+        jerk = jnp.where(bad, _central_jerk(*accels), jerk)
+    else:
+        central = lambda r, *p: _central_jerk(*mech.end_accels(r, _central_points(*p)))
+        jerk = jax.lax.cond(
+            jnp.any(bad),
+            lambda: jnp.where(bad, jax.vmap(central)(rel, s_e, x_e, v_e, a_e), jerk),
+            lambda: jerk,
+        )
     lanes = (rel, kinds, out.sigma, out.raw, s_e, v_e, a_e, g, jerk)
     t_e, q_end, qdot_end = jax.vmap(_event_time)(*lanes, q_end, qdot_end)
     return Ends(status, t_e, q_end, qdot_end), terms

@@ -16,7 +16,7 @@ with its slope. `mechanics(L, consts)` gives them:
   traced by JAX's autodiff before the tape is built.
 
 Each method works on one lane (scalars, or `(1,)` for coordinates) and is vmapped by
-its caller, except `lane_field_accel`, over lanes.
+its caller, except `lane_field_accel` and `leg_ends`, over lanes.
 """
 
 import equinox as eqx
@@ -102,9 +102,21 @@ class AutodiffMechanics(eqx.Module):
         a = self.end_accel(r, s, x, v)
         return a, self.end_jerk(r, s, x, v, a)
 
+    def leg_end(self, r, s, x, v):
+        """`rest_and_end` at the release point and the end `(s, x, v)` of a lane's leg
+        (its units, `r`: its `Release`), with `end_accel_and_jerk` there."""
+        q_end, qdot_end, t_end = r.q0 + r.Qs * x, (r.Qs / r.tau) * v, r.tau * s
+        start, end = self.rest_and_end(r.q0, q_end, qdot_end, t_end)
+        return start, end, *self.end_accel_and_jerk(r, s, x, v)
+
     def end_accels(self, r, points):
         """`end_accel` at several points `(s, x, v)`."""
         return [self.end_accel(r, *p) for p in points]
+
+    def leg_ends(self, r, s, x, v, central_points):
+        """Over lanes: each lane's `leg_end`, and None (`finish` takes the jerk by
+        central differences, `central_points`, with `end_accels` where needed)."""
+        return jax.vmap(self.leg_end)(r, s, x, v), None
 
     def scaled_acceleration(self, fuse=None):
         """The acceleration in a lane's own units: `accel(q0, Qs, tau, s, x, v)`."""
@@ -253,6 +265,49 @@ class CompactMechanics(eqx.Module):
 
     def end_jerk(self, r, s, x, v, a):
         return self._end(r, s, x, v)[JERK] * r.tau**3 / r.Qs
+
+    def leg_ends(self, r, s, x, v, central_points):
+        """Over lanes: each lane's `AutodiffMechanics.leg_end`, and the accelerations in
+        its units at the points `central_points(s, x, v, a)` (a: the acceleration at
+        the end) where some lane's jerk is not finite (the central difference's),
+        from one evaluation site: a loop of one iteration, or two."""
+        zero = jnp.zeros_like(s)
+        tau, Qs = r.tau[None], r.Qs[None]
+        at = lambda s, x, v: (tau * s, r.q0[None] + Qs * x, Qs / tau * v)
+        # (At rest at the release point, and the end, as `leg_end`.)
+        first = (
+            jnp.stack([zero, r.tau * s]),
+            jnp.stack([r.q0, r.q0 + r.Qs * x]),
+            jnp.stack([zero, r.Qs / r.tau * v]),
+        )
+
+        def end_of(out):
+            end = out[:, 1]
+            return end[QDDOT] * r.tau**2 / r.Qs, end[JERK] * r.tau**3 / r.Qs
+
+        def body(c):
+            i, points, outs, _, _ = c
+            out = self._points(*points)
+            outs = jnp.where(i == 0, out, outs)
+            a, jerk = end_of(outs)
+            central = central_points(s, x, v, a)
+            points = at(*(jnp.stack(p) for p in zip(*central)))
+            return i + 1, points, outs, out, jnp.any(~jnp.isfinite(jerk))
+
+        blank = jnp.zeros((len(POINT), 2) + s.shape, s.dtype)
+        init = (jnp.zeros((), jnp.int32), first, blank, blank, jnp.zeros((), bool))
+        run = lambda c: (c[0] == 0) | ((c[0] == 1) & c[4])
+        _, _, outs, last, _ = jax.lax.while_loop(run, body, init)
+        start, end = outs[:, 0], outs[:, 1]
+        accel = (end[QDDOT][:, None], (end[MASS][:, None, None], end[OK] != 0))
+        a, jerk = end_of(outs)
+        legs = (
+            (start[ENERGY], start[SCALE]),
+            (accel, (end[ENERGY], end[SCALE])),
+            a,
+            jerk,
+        )
+        return legs, list(last[QDDOT] * tau**2 / Qs)
 
     def end_accels(self, r, points):
         s, x, v = (jnp.stack(p) for p in zip(*points))
