@@ -48,6 +48,15 @@ def check_callable(f, name: str, expected: str):
 def as_real_array(x, name: str):
     """Converts `x` to a JAX array with a real floating dtype, or raises."""
     check_real(x, name)
+    return as_array(x)
+
+
+def as_array(x):
+    """`jnp.asarray(x)`; a NumPy array by `jax.device_put` (the same dtype and weak
+    type), which copies it where `jnp.asarray` compiles a small program for each
+    shape and dtype on a process's first call (tens of milliseconds)."""
+    if type(x) is np.ndarray:
+        return jax.device_put(x)
     return jnp.asarray(x)
 
 

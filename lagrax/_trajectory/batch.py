@@ -36,6 +36,7 @@ import numpy as np
 from .._cache import executables
 from .._cache.executables import cached_call
 from .._checks import (
+    as_array,
     as_real_array,
     check_callable,
     check_instance,
@@ -368,8 +369,8 @@ def _system(L_c, consts, force, q, v):
         (sigma,) = params
         return [w, field(sigma * tau, (q, sigma * w), None)[1]]
 
-    zero = jnp.zeros((), q.dtype)
-    return System(f, zero, [q, v], [zero + 1])
+    zero = np.zeros((), q.dtype)
+    return System(f, zero, [q, v], [np.ones((), q.dtype)])
 
 
 def _order(solver, rtol, atol) -> int:
@@ -648,7 +649,7 @@ def simulate_batch(
             # says which); under `vmap` or `jvp` it takes them.
             jitted = _compiled(False, devices[:D])
             out = jitted(cfg, shape, *args, ts_arr, consts)
-    ts_out, qs, vs, result, nsteps, rejected, failed = out
+    ts_out, qs, vs, result, nsteps, accepted, rejected, failed = out
     result = jax.tree.unflatten(_RESULT_TREE, [result])
     sol = dfx.Solution(
         t0=t0,
@@ -658,7 +659,7 @@ def simulate_batch(
         interpolation=None,
         stats=dict(
             num_steps=nsteps,
-            num_accepted_steps=nsteps - rejected,
+            num_accepted_steps=accepted,
             num_rejected_steps=rejected,
             max_steps=max_steps,
         ),
@@ -677,7 +678,7 @@ def simulate_batch(
 # (The loop's program returns `result`'s array: an enumeration item's tree does
 # not survive pickling, where the disk cache keeps the output structure.)
 _RESULT_TREE = jax.tree.structure(dfx.RESULTS.successful)
-_OUT_TREE = jax.tree.structure((0,) * 7)  # (`_assemble`'s outputs)
+_OUT_TREE = jax.tree.structure((0,) * 8)  # (`_assemble`'s outputs)
 
 # --- tiers: the compact program first, the specialized one once it pays -----------
 #
@@ -795,8 +796,11 @@ def _tape(L_c, consts, force, n, dtype):
         _TAPES.move_to_end(key)
         return _TAPES[key]
     try:
-        zeros = jnp.zeros((n,), dtype)
-        system = _system(L_c, [jnp.asarray(c) for c in consts], force, zeros, zeros)
+        # (NumPy values: `jnp` would compile a small program for each on a
+        # process's first call.)
+        zeros = np.zeros((n,), dtype)
+        consts = [as_array(c) for c in consts]
+        system = _system(L_c, consts, force, zeros, zeros)
         if not system.scalar:
             raise NotImplementedError("not scalarized")
         prog = system.prog
@@ -866,6 +870,7 @@ def _assemble(B, n, has_ts, save_t1, ys, tend, code, nsteps, rejected, ts_arr):
         vs,
         result,
         nsteps,
+        nsteps - rejected,  # (here, not op by op: a compile on a first call)
         rejected,
         jnp.sum(code != _DONE),
     )
