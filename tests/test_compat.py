@@ -13,7 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from lagrax import _compat
-from lagrax._jaxpr.fusion import ELEMENTAL, elemental_options
+from lagrax._jaxpr.fusion import (
+    ELEMENTAL,
+    elemental_options,
+    vector_options,
+    WIDE,
+    wide_vectors,
+)
 from lagrax._trajectory.simulate import elemental
 
 
@@ -139,7 +145,24 @@ def test_xla_takes_the_elemental_emitters_option():
     # then every eager CPU program compiles with XLA's default emitters (slower
     # Taylor steps, longer compiles); see `lagrax._jaxpr.fusion`.
     assert _compat.compiles_with(tuple(ELEMENTAL.items()))
-    assert elemental_options() == ELEMENTAL
+    assert elemental_options() == {**ELEMENTAL, **vector_options()}
+
+
+def test_xla_takes_the_wide_vectors_option_and_computes_the_same():
+    # Fails when the installed XLA no longer knows `xla_cpu_prefer_vector_width`
+    # (then programs on AMD's AVX-512 run at XLA's default width, slower); the
+    # option changes no result, bit for bit.
+    assert _compat.compiles_with(tuple(WIDE.items()))
+    assert vector_options() == (WIDE if wide_vectors() else {})
+
+    def f(x, y):
+        return jax.lax.fori_loop(0, 5, lambda i, x: jnp.sin(x) * y + jnp.cos(x) / y, x)
+
+    x = jnp.linspace(-3.0, 3.0, 1001)
+    y = jnp.linspace(0.5, 2.0, 1001)
+    plain = jax.jit(f)(x, y)
+    wide = jax.jit(f, compiler_options=WIDE)(x, y)
+    np.testing.assert_array_equal(wide, plain)
 
 
 def test_an_option_xla_refuses_is_not_passed():

@@ -10,6 +10,7 @@ compiles as one loop with several outputs.
 """
 
 import contextlib
+import functools
 import threading
 
 import jax
@@ -27,11 +28,36 @@ from .._compat import accepted_options
 # `jit`, the caller's options apply.
 ELEMENTAL = {"xla_cpu_use_fusion_emitters": False}
 
+# XLA's CPU compiler prefers 256-bit vectors; on an AMD processor with 512-bit ones
+# (AVX-512, at full clock) that leaves half of each vector idle: 512 runs the same
+# programs bit for bit, faster (benchmarks/README.md). On Intel's, whose clock may
+# drop under 512-bit work, XLA's default stays (not measured).
+WIDE = {"xla_cpu_prefer_vector_width": 512}
+
 
 def elemental_options() -> dict:
     """`ELEMENTAL` where the installed XLA takes it, else `{}` (XLA's defaults: the
-    same results, slower)."""
-    return accepted_options(ELEMENTAL)
+    same results, slower); with `vector_options()`."""
+    return {**accepted_options(ELEMENTAL), **vector_options()}
+
+
+def vector_options() -> dict:
+    """`WIDE` on a CPU whose 512-bit vectors pay (`WIDE`) where the installed XLA
+    takes it, else `{}`."""
+    return accepted_options(WIDE) if wide_vectors() else {}
+
+
+@functools.cache
+def wide_vectors() -> bool:
+    """Whether this machine's processor is an AMD one with AVX-512 (Linux's
+    `/proc/cpuinfo`; elsewhere False: XLA's default)."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            text = fh.read(1 << 16)
+    except OSError:
+        return False
+    flags = next((ln for ln in text.splitlines() if ln.startswith("flags")), "")
+    return "AuthenticAMD" in text and "avx512f" in flags.split()
 
 
 _STATE = threading.local()

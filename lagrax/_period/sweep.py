@@ -20,7 +20,7 @@ from .._checks import (
     lane_count,
 )
 from .._jaxpr.canonical import canonical_lagrangian
-from .._jaxpr.fusion import elemental_options
+from .._jaxpr.fusion import elemental_options, vector_options
 from .._results import status_message, SUCCESS
 from .._taylor.taylor import Taylor
 from . import tier
@@ -296,9 +296,10 @@ def _eager(L_c, cfg, devices, q, order, args):
     compiled or on disk, or where the compact tier does not apply or its work
     would repay the specialized compile; else the compact program, where its
     executable is at hand (`tier.py`)."""
-    jitted = _sweep_jit(L_c, cfg, devices)
-    origin = (_sweep_jit, L_c, cfg, devices)
-    call = (jitted, None, q, order, *args)
+    wide = devices[0].platform == "cpu"
+    jitted = _sweep_jit(L_c, cfg, devices, False, wide)
+    origin = (_sweep_jit, L_c, cfg, devices, False, wide)
+    call = (jitted, vector_options() if wide else None, q, order, *args)
     specialized = lambda: executables.cached_call(
         *call, origin=origin, out_tree=_OUT_TREE
     )
@@ -315,7 +316,8 @@ def _eager(L_c, cfg, devices, q, order, args):
     if not tier.always() and plan.repeated():
         # A job that repeats: where a core is idle, the specialized program compiles
         # there meanwhile, and takes over once on disk.
-        executables.compile_later(jitted, *call, origin=origin, out_tree=_OUT_TREE)
+        plain = _sweep_jit(L_c, cfg, devices)
+        executables.compile_later(plain, *call, origin=origin, out_tree=_OUT_TREE)
     m = dataclasses.replace(cfg, stepper=plan.stepper)
     # (With XLA's elemental CPU emitters: the compact program, loops over the
     # tape's blocks, compiles faster.)
@@ -464,17 +466,19 @@ _JACOBIAN_OUT_TREE = jax.tree.structure(((Periods(*[0] * 5), 0), 0))
 
 
 @functools.lru_cache(maxsize=64)
-def _sweep_jit(L, m, devices, elemental=False):
+def _sweep_jit(L, m, devices, elemental=False, wide=False):
     """`_sweep_body` compiled for one Lagrangian, method and device set: a plain
     `jax.jit` (its C++ dispatch), not `eqx.filter_jit`, whose Python-side flattening
-    and hashing of the static arguments cost a noticeable part of a sweep."""
+    and hashing of the static arguments cost a noticeable part of a sweep. `wide`:
+    with `vector_options()`, for a program that is not called inside another (a
+    `jit` with compile options cannot be)."""
     body = functools.partial(_sweep_body, L, m, devices)
     if elemental:
         # (`executables.program`: the compact tier's, which `executables.call`
         # compiles where XLA keeps its loops whole, so that a busy second core, e.g.
         # compiling the specialized program, does not hold up its loops' parts.)
         return executables.program(body, elemental_options())
-    return jax.jit(body)
+    return jax.jit(body, compiler_options=(vector_options() or None) if wide else None)
 
 
 def _sweep_body(L, m, devices, q0, order, consts, rtol, atol, t_max, energy_tol):
