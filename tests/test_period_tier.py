@@ -356,14 +356,10 @@ def test_the_compact_tier_agrees_with_the_specialized_program(
     np.testing.assert_allclose(d_compact, jax.grad(mean)(q), rtol=1e-10, atol=1e-14)
 
 
-@pytest.mark.slow
-def test_a_repeated_sweep_takes_the_specialized_program_compiled_later(
-    monkeypatch, compact_cache
-):
-    """Where a core is idle, a Lagrangian's second sweep on the compact tier (its
-    executable at hand) starts its specialized program's compile in a worker
-    process; once on disk, it takes over (same periods to rounding, same
-    statuses)."""
+@pytest.fixture
+def later_tiers(monkeypatch, compact_cache):
+    """The tiers as in a process of its own with an idle core, where a compile later
+    is started (`executables.compile_later`): the disk cache's `loads`."""
     folder, loads, _ = compact_cache
     for name, empty in (("_COMPILED", collections.Counter()), ("_NOTIFIED", set())):
         monkeypatch.setattr(tier, name, empty)
@@ -373,6 +369,18 @@ def test_a_repeated_sweep_takes_the_specialized_program_compiled_later(
     monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
     monkeypatch.setenv("LAGRAX_BACKGROUND", "1")
     monkeypatch.setenv("LAGRAX_COMPACT", "1")
+    return loads
+
+
+@pytest.mark.slow
+def test_a_repeated_sweep_takes_the_specialized_program_compiled_later(
+    monkeypatch, later_tiers
+):
+    """Where a core is idle, a Lagrangian's second sweep on the compact tier (its
+    executable at hand) starts its specialized program's compile in a worker
+    process; once on disk, it takes over (same periods to rounding, same
+    statuses)."""
+    loads = later_tiers
     tier.several_lagrangians()
     q0 = jnp.linspace(0.1, 3.0, 64)
     L = pendulum.lagrangian(g=1.9)
@@ -394,19 +402,11 @@ def test_a_repeated_sweep_takes_the_specialized_program_compiled_later(
 
 @pytest.mark.slow
 def test_a_repeated_gradient_takes_the_specialized_program_compiled_later(
-    monkeypatch, compact_cache
+    monkeypatch, later_tiers
 ):
     """As for a sweep: a repeated `jax.grad` of a sweep (the forward jacobian's
     program) is taken over by its specialized program, compiled later."""
-    folder, loads, _ = compact_cache
-    for name, empty in (("_COMPILED", collections.Counter()), ("_NOTIFIED", set())):
-        monkeypatch.setattr(tier, name, empty)
-    monkeypatch.setattr(tier, "_SPENT", collections.Counter())
-    monkeypatch.setattr(tier, "_RATE", {})
-    monkeypatch.setattr(executables, "_LATER", {})
-    monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
-    monkeypatch.setenv("LAGRAX_BACKGROUND", "1")
-    monkeypatch.setenv("LAGRAX_COMPACT", "1")
+    loads = later_tiers
     tier.several_lagrangians("jacobian")
     q0 = jnp.linspace(0.1, 2.0, 32)
 
