@@ -77,8 +77,9 @@ def test_a_damaged_entry_is_compiled_again(cache):
     assert loads[-1] is True
 
 
-def test_simulate_batch_is_compiled_once_for_later_processes(cache):
-    folder, loads, new_process = cache
+def _oscillators():
+    """`(q0, run)`: `simulate_batch` of six 2-D harmonic oscillators, a cheap
+    Taylor program."""
 
     def L(q, qdot, t):
         return 0.5 * jnp.sum(qdot**2) - 0.5 * jnp.sum(q**2)
@@ -88,6 +89,13 @@ def test_simulate_batch_is_compiled_once_for_later_processes(cache):
         L, q0, jnp.zeros_like(q0), 0.0, 3.0, solver=lagrax.Taylor(order=8),
         rtol=1e-12, atol=1e-12,
     )  # fmt: skip
+    return q0, run
+
+
+def test_simulate_batch_is_compiled_once_for_later_processes(cache):
+    folder, loads, new_process = cache
+
+    q0, run = _oscillators()
     first = run()
     new_process()
     again = run()
@@ -291,14 +299,7 @@ def _batch_call(monkeypatch):
         batch, "cached_call", lambda *a, **kw: seen.append((a, kw)) or real(*a, **kw)
     )
 
-    def L(q, qdot, t):
-        return 0.5 * jnp.sum(qdot**2) - 0.5 * jnp.sum(q**2)
-
-    q0 = jnp.linspace(-1.0, 1.0, 12).reshape(6, 2)
-    run = lambda: lagrax.simulate_batch(
-        L, q0, jnp.zeros_like(q0), 0.0, 3.0, solver=lagrax.Taylor(order=8),
-        rtol=1e-12, atol=1e-12,
-    )  # fmt: skip
+    _, run = _oscillators()
     with monkeypatch.context() as m:
         m.setenv("LAGRAX_CACHE_DIR", "")
         sol = run()

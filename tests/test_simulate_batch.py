@@ -262,6 +262,14 @@ def test_compact_tier_equals_the_specialized_program(monkeypatch):
     assert len(executables._LOADED) == loaded
 
 
+def _two_oscillators():
+    q0 = np.array([[0.5, -0.2], [0.1, 0.3]])
+    return lagrax.simulate_batch(
+        oscillator, q0, np.zeros_like(q0), 0.0, 1.0, solver=TAYLOR, rtol=1e-10,
+        atol=1e-10,
+    )  # fmt: skip
+
+
 def test_tiers_compact_first_then_specialized(monkeypatch):
     """A Lagrangian whose specialized program compiles for long runs on the compact
     program first, and on the specialized one once the time spent on the compact
@@ -279,11 +287,7 @@ def test_tiers_compact_first_then_specialized(monkeypatch):
     monkeypatch.setattr(batch, "_SPENT", collections.Counter())
     monkeypatch.setattr(batch, "_NOTIFIED", set())
     monkeypatch.setenv("LAGRAX_COMPACT", "1")
-    q0 = np.array([[0.5, -0.2], [0.1, 0.3]])
-    run = lambda: lagrax.simulate_batch(
-        oscillator, q0, np.zeros_like(q0), 0.0, 1.0, solver=TAYLOR, rtol=1e-10,
-        atol=1e-10,
-    )  # fmt: skip
+    run = _two_oscillators
     monkeypatch.setattr(batch, "_compile_estimate", lambda nodes, order: 1e3)
     first = run()
     assert not calls and sum(batch._SPENT.values()) > 0
@@ -322,11 +326,7 @@ def test_tiers_compile_the_specialized_program_later(monkeypatch, executable_cac
     monkeypatch.setattr(batch, "_compile_estimate", lambda nodes, order: 1e-3)
     monkeypatch.setattr(batch, "_COMPACT_FROM", 0.0)
     monkeypatch.setenv("LAGRAX_COMPACT", "1")
-    q0 = np.array([[0.5, -0.2], [0.1, 0.3]])
-    run = lambda: lagrax.simulate_batch(
-        oscillator, q0, np.zeros_like(q0), 0.0, 1.0, solver=TAYLOR, rtol=1e-10,
-        atol=1e-10,
-    )  # fmt: skip
+    run = _two_oscillators
     first = run()  # (the compact program compiled and written: the tier's first)
     assert not calls and executables._LATER == {}
     run()  # (the spent time is past the estimate: the job, not the rental)
