@@ -303,6 +303,40 @@ def test_tiers_compact_first_then_specialized(monkeypatch):
     assert calls == [1, 1]
 
 
+def test_tiers_stay_compact_where_the_specialized_step_would_loop(monkeypatch):
+    """Beyond the unroll budget the specialized step loops over the orders and runs
+    slower than the compact program: however long a Lagrangian has run on the
+    compact tier, it stays there, and no compile is started for later."""
+    import collections
+
+    from lagrax._trajectory import batch
+
+    calls, later = [], []
+    real = lagrax._cache.executables.cached_call
+    monkeypatch.setattr(
+        batch, "cached_call", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    monkeypatch.setattr(
+        batch.executables, "compile_later", lambda *a, **k: later.append(1)
+    )
+    monkeypatch.setattr(batch, "_SPENT", collections.Counter())
+    monkeypatch.setattr(batch, "_NOTIFIED", set())
+    monkeypatch.setenv("LAGRAX_COMPACT", "1")
+    monkeypatch.setattr(batch, "_compile_estimate", lambda nodes, order: 1e3)
+    monkeypatch.setattr(batch, "_UNROLL_BUDGET", 0)
+    first = _two_oscillators()
+    (cfg,) = batch._SPENT
+    batch._SPENT[cfg] = 1e4
+    second = _two_oscillators()
+    assert not calls and not later
+    np.testing.assert_array_equal(second.ys[0], first.ys[0])
+    # Within the budget, the same call goes to the specialized program.
+    monkeypatch.setattr(batch, "_UNROLL_BUDGET", 10**9)
+    with pytest.warns(UserWarning, match="specialized"):
+        _two_oscillators()
+    assert calls == [1]
+
+
 def test_tiers_compile_the_specialized_program_later(monkeypatch, executable_cache):
     """Where a core is idle, from the second call of a Lagrangian on the compact
     tier, its specialized program compiles in a worker process; the compact tier

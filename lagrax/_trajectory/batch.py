@@ -724,16 +724,19 @@ def _tiered(call, origin, n, dtype):
     estimate = _compile_estimate(nodes, cfg.order)
     if not only and estimate < _COMPACT_FROM:
         return specialized()
+    # Beyond the unroll budget the specialized step loops over the orders, and runs
+    # slower than the compact program (benchmarks/README.md): the compact tier stays.
+    rents = not only and cfg.order * nodes <= _UNROLL_BUDGET
     # From the second call with this configuration (a job that repeats), where a
     # core is idle, the specialized program compiles there meanwhile and takes over
     # once on disk; else, the ski rental.
     later = None
-    if not only and _SPENT[cfg] > 0:
+    if rents and _SPENT[cfg] > 0:
         later = executables.compile_later(
             _plain(cfg, shape, *origin[1:]), jitted, options, cfg, shape, *args,
             n_static=2, origin=origin,
         )  # fmt: skip
-    if not only and later != "running" and _SPENT[cfg] >= estimate:
+    if rents and later != "running" and _SPENT[cfg] >= estimate:
         _notify(cfg, estimate)
         return specialized()
     # (At most 128 lanes on the compact program: a lane group's histories, which
