@@ -36,12 +36,16 @@ recurrences run in ONE program per *size class*, the equations being data (a
     index arrays are arguments: the compiled program depends on the tape's sizes
     and the families it holds (its size class), not on the Lagrangian, so one
     executable serves every system of its class and can live in the library's
-    disk cache.
+    disk cache. Inside a caller's `jit` (`lagrax.Taylor` as a diffrax solver) the
+    tape is concrete and `inline_coefficients` compiles it alone: the blocks of a
+    level merged into one operation with constant indices, unrolled within the
+    loop over orders.
 
 `benchmarks/taylor_coefficients.py` measures it against the unrolled program.
 """
 
 import functools
+import hashlib
 import math
 
 import equinox as eqx
@@ -1002,9 +1006,7 @@ _ONE_OPCODE = (RARE, LOGIC, TRANS)  # (families whose blocks hold one opcode)
 
 def _family_fns(opcodes):
     """The families' functions, each switch with a branch per opcode in `opcodes`
-    only (None: every opcode, one program for every tape of a size class)."""
-    if opcodes is None:
-        return _FAMILY_FNS
+    only (a program for one tape: smaller, compiled faster)."""
     pick = lambda fns: (
         {n: f for n, f in fns.items() if OPCODE[n] in opcodes}
         or dict([next(iter(fns.items()))])
@@ -1250,7 +1252,7 @@ def _order_k(tape, Y, F, inner, D, blocks=None):
 
 
 def compact_coefficients(
-    tape: CompactTape, K: int, t, ys, params, trig=False, bounds=None, opcodes=None
+    tape: CompactTape, K: int, t, ys, params, trig=False, bounds=None
 ):
     r"""The Taylor coefficients $y_0..y_K$ of $y' = f(t, y)$ about $(t, y)$ from the
     tape of $f$'s program: `ys` the state's entries (a list of `(W,)` arrays, the
@@ -1260,9 +1262,7 @@ def compact_coefficients(
     `trig`: float64 sines and cosines at order 0 by `lagrax._jaxpr.trig.sincos`
     (vectorized) instead of the C library's. `bounds`: the tape's loop bounds as
     Python ints (`bounds`), for a tape passed traced (each loop then a `scan`).
-    `opcodes`: the opcodes the tape holds (a frozenset), for a program compiled
-    for this tape alone (in a caller's `jit`): order 0's switches get those
-    branches only (a smaller program, compiled faster)."""
+    A concrete tape inside a caller's `jit`: `inline_coefficients`."""
     seg, blocks, rows = (None, None, None) if bounds is None else bounds
     tape = jax.tree.map(jnp.asarray, tape)
     W = t.shape[0]
@@ -1272,7 +1272,7 @@ def compact_coefficients(
     first = tape.inputs[0]  # (the inputs, then the parameters: consecutive slots)
     # --- order 0
     Y, D, state = _inputs0(tape, t, ys, params)
-    Y, D = _order0(tape, Y, D, trig, seg, _family_fns(opcodes))
+    Y, D = _order0(tape, Y, D, trig, seg)
     Y, D = _at(Y, tape.perm), _at(D, tape.perm)
     # --- orders 1..K-1 of the nodes, 2..K of the state
     H = tape.hist.shape[1]
@@ -1344,6 +1344,8 @@ def compact_coefficients(
 def _take(Y, idx):
     """`Y[idx]` for a constant index array: a slice where the indices are
     consecutive, else a gather by constant indices."""
+    if idx.shape[0] == 0:
+        return Y[:0]
     s, n = int(idx[0]), idx.shape[0]
     if np.array_equal(idx, np.arange(s, s + n)):
         return Y[s : s + n]
@@ -1399,7 +1401,7 @@ def _run_form(node, F, D):
     constant or per lane (`D`)."""
     W = F.shape[2]
     Fz = jnp.concatenate([F, jnp.zeros((3, 1, W), F.dtype)], axis=1)
-    Ac = jnp.take(Fz, node["hrow"], axis=1)  # (-1: the zero row)
+    Ac = jnp.take(Fz, node["hrow"], axis=1, mode="clip")  # (a linear node's: zero)
     Dl = _at(D, node["slot"].astype(np.int32))
     form = node["form"][:, None]
     cst = node["cst"].astype(F.dtype)
@@ -1479,9 +1481,9 @@ def inline_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False):
     # --- orders 1..K-1 of the nodes, 2..K of the state
     runs, node = _runs(static)
     rows, p, w = _rows_by_sum(static)
-    at_row = np.full((tape.hist.shape[1] + 1,), -1, np.int32)
+    at_row = np.full((tape.hist.shape[1] + 1,), rows.shape[0], np.int32)
     at_row[rows] = np.arange(rows.shape[0])
-    node["hrow"] = at_row[node["hrow"]]
+    node["hrow"] = at_row[node["hrow"]]  # (a linear node's: past the rows)
     P0, Q0 = _at(Y, tape.hist[0]), _at(Y, tape.hist[1])
     F, u0, u1 = _row_form(tape, D, P0, Q0)
     F, u0, u1, P0, Q0 = F[:, rows], u0[rows], u1[rows], P0[rows], Q0[rows]
@@ -1501,9 +1503,7 @@ def inline_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False):
         y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
         Y = Y.at[first : first + m].set(jnp.concatenate([t_k, y_k]))
         inner = lax.switch(index(k), sums, k, Hp, R)
-        inner = jnp.take(
-            jnp.concatenate([inner, jnp.zeros((1, W), dtype)]), node["hrow"], axis=0
-        )
+        inner = _at(jnp.concatenate([inner, jnp.zeros((1, W), dtype)]), node["hrow"])
         Y = _order_k_static(runs, Y, A, inner)
         PQ = _take(Y, hist.reshape(-1)).reshape(2, 1, -1, W)
         Hp = lax.dynamic_update_index_in_dim(Hp, PQ[0], k, 0)
@@ -1601,9 +1601,34 @@ def compact_values(tape: CompactTape, t, ys, params, trig=False):
     return _at(Y, _at(tape.perm, tape.outs))
 
 
-@functools.partial(jax.jit, static_argnames=("K", "trig", "bounds", "opcodes"))
-def _jitted(tape, t, ys, params, K, trig, bounds, opcodes=None):
-    return compact_coefficients(tape, K, t, ys, params, trig, bounds, opcodes)
+@functools.partial(jax.jit, static_argnames=("K", "trig", "bounds"))
+def _jitted(tape, t, ys, params, K, trig, bounds):
+    return compact_coefficients(tape, K, t, ys, params, trig, bounds)
+
+
+class _Concrete:
+    """A concrete tape as a static argument of `jax.jit`: equal to another of the
+    same contents, so that a program traced again (diffrax traces a step several
+    times) finds the first trace."""
+
+    def __init__(self, tape):
+        self.tape = tape
+        digest = hashlib.sha1()
+        for leaf in jax.tree.leaves(tape):
+            leaf = np.asarray(leaf)
+            digest.update(f"{leaf.dtype}{leaf.shape}".encode() + leaf.tobytes())
+        self.key = (digest.hexdigest(), tape.families, tape.caps0)
+
+    def __hash__(self):
+        return hash(self.key)
+
+    def __eq__(self, other):
+        return isinstance(other, _Concrete) and self.key == other.key
+
+
+@functools.partial(jax.jit, static_argnames=("tape", "K", "trig"))
+def _inline_jitted(tape, t, ys, params, K, trig):
+    return inline_coefficients(tape.tape, K, t, ys, params, trig)
 
 
 def traced_once(tape: CompactTape, K: int, t, ys, params, trig=False):
@@ -1624,10 +1649,11 @@ def lane_function(tape: CompactTape, K: int, trig=False, inline=False):
     from jax import custom_batching
 
     loops = bounds(tape)
+    concrete = _Concrete(tape) if inline else None
 
     def plain(t, ys, params):
         if inline:
-            return inline_coefficients(tape, K, t, list(ys), list(params), trig)
+            return _inline_jitted(concrete, t, list(ys), list(params), K, trig)
         return _jitted(tape, t, list(ys), list(params), K, trig, loops)
 
     @custom_batching.custom_vmap
