@@ -1631,6 +1631,30 @@ def _inline_jitted(tape, t, ys, params, K, trig):
     return inline_coefficients(tape.tape, K, t, ys, params, trig)
 
 
+# Lanes per pass of the inline program: more lanes run in passes of this many (a
+# loop), whose arrays stay in the CPU's caches.
+_LANES = 256
+
+
+def _in_passes(fn, t, ys, params):
+    """`fn(t, ys, params)` (lists of `(W,)` arrays in, a list of lists of `(W,)`
+    arrays out) over `W > _LANES` lanes in passes of `_LANES` (a `lax.map`), the
+    last pass padded with copies of the last lane."""
+    W = t.shape[0]
+    n = -(-W // _LANES)
+    cut = lambda x: jnp.pad(x, (0, n * _LANES - W), mode="edge").reshape(n, _LANES)
+    rows = lambda xs: jnp.stack([cut(x) for x in xs], 1) if xs else None
+
+    def one(args):
+        t, ys, params = args
+        out = fn(t, list(ys), [] if params is None else list(params))
+        return jnp.stack([jnp.stack(o) for o in out])
+
+    out = lax.map(one, (cut(t), rows(ys), rows(params)))  # (n, entries, K + 1, C)
+    out = jnp.moveaxis(out, 0, 2).reshape(out.shape[1], out.shape[2], -1)[..., :W]
+    return [list(o) for o in out]
+
+
 def traced_once(tape: CompactTape, K: int, t, ys, params, trig=False):
     """`compact_coefficients` of a concrete tape as one `jax.jit` (the tape and
     its loop bounds its arguments): traced once per size class and bounds, and
@@ -1645,7 +1669,7 @@ def lane_function(tape: CompactTape, K: int, trig=False, inline=False):
     array, each lane then a strided access). Its derivatives are those of the
     plain program (`jax.custom_jvp`: forward and reverse mode). `inline`: the
     program is compiled inside a caller's `jit`, for this tape alone
-    (`inline_coefficients`)."""
+    (`inline_coefficients`), over many lanes in passes (`_in_passes`)."""
     from jax import custom_batching
 
     loops = bounds(tape)
@@ -1653,7 +1677,10 @@ def lane_function(tape: CompactTape, K: int, trig=False, inline=False):
 
     def plain(t, ys, params):
         if inline:
-            return _inline_jitted(concrete, t, list(ys), list(params), K, trig)
+            one = lambda t, ys, params: _inline_jitted(concrete, t, ys, params, K, trig)
+            if t.shape[0] > _LANES:
+                return _in_passes(one, t, list(ys), list(params))
+            return one(t, list(ys), list(params))
         return _jitted(tape, t, list(ys), list(params), K, trig, loops)
 
     @custom_batching.custom_vmap
