@@ -1378,7 +1378,8 @@ def _runs(tape):
             hrow += [-1] * n
         cst.append(sst[bi, :, :n] if fm == 1 else np.zeros((2, n), sst.dtype))
         form += [fm] * n
-        if runs and not ((gat >= first) & (gat < out)).any():
+        follows = runs and out == runs[-1][0] + runs[-1][2]
+        if follows and not ((gat >= first) & (gat < out)).any():
             s, node, count, g = runs[-1]
             runs[-1] = (s, node, count + n, np.concatenate([g, gat], axis=1))
         else:
