@@ -1,6 +1,8 @@
 """`lagrax.Taylor` as a diffrax solver: plain vector fields, dense output, events,
 batching, derivatives, time reversal, and Lagrangians through `simulate`."""
 
+from functools import partial
+
 import diffrax as dfx
 import jax
 import jax.numpy as jnp
@@ -283,3 +285,34 @@ def test_compact_program_derivatives():
     )
     np.testing.assert_allclose(fwd, fd, atol=1e-7)
     np.testing.assert_allclose(rev, fwd, rtol=0, atol=1e-11)
+
+
+def test_inline_program_equals_the_size_class_program(monkeypatch):
+    """The program compiled inside a caller's `jit` (`inline_coefficients`: blocks
+    unrolled into runs, each inner sum over the rows that weigh it) against the
+    size-class program, on a tape with constant and per-lane linear nodes and
+    Cauchy nodes of every sum (plain, weighted, both), its lanes in passes (the
+    last one padded)."""
+    from lagrax._jaxpr.canonical import canonical_lagrangian
+    from lagrax._taylor import compact
+    from lagrax._trajectory.batch import _system
+
+    def L(q, qdot, t):
+        T = 0.5 * qdot @ qdot + 0.25 * jnp.cos(q[0] - q[1]) * qdot[0] * qdot[1]
+        V = (2 + q[0] ** 2) ** 1.5 + jnp.abs(q[1]) * q[1] ** 2 - jnp.exp(0.3 * q[1])
+        return T - V
+
+    L_c, consts = canonical_lagrangian(L, jnp.float64, 2)
+    prog = _system(L_c, consts, None, jnp.zeros(2), jnp.zeros(2)).prog
+    tape = compact.build(prog, prog.inputs, prog.params, prog.outs, jnp.float64)
+    seq = np.asarray(tape.seq1)[: int(tape.blocks[1])]
+    assert set(seq[:, 0]) == {0, 1, 2, 3, 4}  # (sums plain, weighted, both; linear)
+    rng = np.random.default_rng(0)
+    t, ys = jnp.asarray(rng.uniform(0, 1, 3)), jnp.asarray(rng.uniform(-1, 1, (4, 3)))
+    args = (t, list(ys), [jnp.ones(3)])
+    K = 9
+    want = np.asarray(jax.jit(partial(compact.compact_coefficients, tape, K))(*args))
+    scale = np.max(np.abs(want), axis=(0, 2), keepdims=True)
+    monkeypatch.setattr(compact, "_LANES", 2)
+    got = np.asarray(jax.jit(compact.lane_function(tape, K, inline=True))(*args))
+    np.testing.assert_allclose(got / scale, want / scale, rtol=0, atol=1e-14)

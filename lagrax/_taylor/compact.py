@@ -36,12 +36,16 @@ recurrences run in ONE program per *size class*, the equations being data (a
     index arrays are arguments: the compiled program depends on the tape's sizes
     and the families it holds (its size class), not on the Lagrangian, so one
     executable serves every system of its class and can live in the library's
-    disk cache.
+    disk cache. Inside a caller's `jit` (`lagrax.Taylor` as a diffrax solver) the
+    tape is concrete and `inline_coefficients` compiles it alone: the blocks of a
+    level merged into one operation with constant indices, unrolled within the
+    loop over orders.
 
 `benchmarks/taylor_coefficients.py` measures it against the unrolled program.
 """
 
 import functools
+import hashlib
 import math
 
 import equinox as eqx
@@ -1002,9 +1006,7 @@ _ONE_OPCODE = (RARE, LOGIC, TRANS)  # (families whose blocks hold one opcode)
 
 def _family_fns(opcodes):
     """The families' functions, each switch with a branch per opcode in `opcodes`
-    only (None: every opcode, one program for every tape of a size class)."""
-    if opcodes is None:
-        return _FAMILY_FNS
+    only (a program for one tape: smaller, compiled faster)."""
     pick = lambda fns: (
         {n: f for n, f in fns.items() if OPCODE[n] in opcodes}
         or dict([next(iter(fns.items()))])
@@ -1250,7 +1252,7 @@ def _order_k(tape, Y, F, inner, D, blocks=None):
 
 
 def compact_coefficients(
-    tape: CompactTape, K: int, t, ys, params, trig=False, bounds=None, opcodes=None
+    tape: CompactTape, K: int, t, ys, params, trig=False, bounds=None
 ):
     r"""The Taylor coefficients $y_0..y_K$ of $y' = f(t, y)$ about $(t, y)$ from the
     tape of $f$'s program: `ys` the state's entries (a list of `(W,)` arrays, the
@@ -1260,9 +1262,7 @@ def compact_coefficients(
     `trig`: float64 sines and cosines at order 0 by `lagrax._jaxpr.trig.sincos`
     (vectorized) instead of the C library's. `bounds`: the tape's loop bounds as
     Python ints (`bounds`), for a tape passed traced (each loop then a `scan`).
-    `opcodes`: the opcodes the tape holds (a frozenset), for a program compiled
-    for this tape alone (in a caller's `jit`): order 0's switches get those
-    branches only (a smaller program, compiled faster)."""
+    A concrete tape inside a caller's `jit`: `inline_coefficients`."""
     seg, blocks, rows = (None, None, None) if bounds is None else bounds
     tape = jax.tree.map(jnp.asarray, tape)
     W = t.shape[0]
@@ -1272,7 +1272,7 @@ def compact_coefficients(
     first = tape.inputs[0]  # (the inputs, then the parameters: consecutive slots)
     # --- order 0
     Y, D, state = _inputs0(tape, t, ys, params)
-    Y, D = _order0(tape, Y, D, trig, seg, _family_fns(opcodes))
+    Y, D = _order0(tape, Y, D, trig, seg)
     Y, D = _at(Y, tape.perm), _at(D, tape.perm)
     # --- orders 1..K-1 of the nodes, 2..K of the state
     H = tape.hist.shape[1]
@@ -1335,6 +1335,187 @@ def compact_coefficients(
     carry = (jnp.zeros_like(Y), Hp, Hq, Z)
     if K > 1:  # (K = 1: the acceleration alone, no order to recur)
         Z = lax.fori_loop(1, K, order, carry)[3]
+    return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
+
+
+# --- a concrete tape, inside a caller's trace -----------------------------------------
+
+
+def _take(Y, idx):
+    """`Y[idx]` for a constant index array: a slice where the indices are
+    consecutive, else a gather by constant indices."""
+    if idx.shape[0] == 0:
+        return Y[:0]
+    s, n = int(idx[0]), idx.shape[0]
+    if np.array_equal(idx, np.arange(s, s + n)):
+        return Y[s : s + n]
+    return _at(Y, idx)
+
+
+def _runs(tape):
+    """The blocks at orders >= 1 of a concrete tape merged into *runs*: blocks in
+    the level order none of which reads another's outputs (their outputs are
+    consecutive slots). Returns `(runs, node)`: per run `(first slot, first node,
+    nodes, its operands' slots (3, nodes))`; per node (in the order of their
+    slots) its form (0 Cauchy, 1 constant linear, 2 per-lane linear), history row
+    (-1 for a linear node), constant coefficients `(2, nodes)` and slot."""
+    seq = np.asarray(tape.seq1)[: int(np.asarray(tape.blocks)[1])]
+    cgat, cout = np.asarray(tape.cgat), np.asarray(tape.cout)
+    sgat, sout, sst = np.asarray(tape.sgat), np.asarray(tape.sout), np.asarray(tape.sst)
+    dgat, dout = np.asarray(tape.dgat), np.asarray(tape.dout)
+    runs, form, hrow, cst = [], [], [], []
+    first = nodes = 0
+    for kind, bi, n in seq:
+        fm = 0 if kind < 3 else kind - 2
+        if fm == 0:
+            out, row = (int(x) for x in cout[bi])
+            gat = cgat[bi, :, :n]
+            hrow += range(row, row + n)
+        else:
+            out = int((sout if fm == 1 else dout)[bi])
+            ops = (sgat if fm == 1 else dgat)[bi, :, :n]
+            gat = np.concatenate([ops, np.zeros((1, n), ops.dtype)])
+            hrow += [-1] * n
+        cst.append(sst[bi, :, :n] if fm == 1 else np.zeros((2, n), sst.dtype))
+        form += [fm] * n
+        follows = runs and out == runs[-1][0] + runs[-1][2]
+        if follows and not ((gat >= first) & (gat < out)).any():
+            s, node, count, g = runs[-1]
+            runs[-1] = (s, node, count + n, np.concatenate([g, gat], axis=1))
+        else:
+            first = out
+            runs.append((out, nodes, n, gat))
+        nodes += n
+    node = dict(
+        form=np.asarray(form, np.int32),
+        hrow=np.asarray(hrow, np.int32),
+        cst=np.concatenate(cst, axis=1) if cst else np.zeros((2, 0)),
+        slot=np.concatenate([np.arange(s, s + n) for s, _, n, _ in runs] or [[]]),
+    )
+    return runs, node
+
+
+def _run_form(node, F, D):
+    r"""Per node of the runs (`_runs`), the coefficients $(A_0, A_1, A_2)$ of its
+    operands $(X, P, Q)$ at order $k$: a Cauchy node's `_row_form` (`F`, its
+    rows in the order of `node["hrow"]`), a linear node's $(s_0, s_1, 0)$,
+    constant or per lane (`D`)."""
+    W = F.shape[2]
+    Fz = jnp.concatenate([F, jnp.zeros((3, 1, W), F.dtype)], axis=1)
+    Ac = jnp.take(Fz, node["hrow"], axis=1, mode="clip")  # (a linear node's: zero)
+    Dl = _at(D, node["slot"].astype(np.int32))
+    form = node["form"][:, None]
+    cst = node["cst"].astype(F.dtype)
+    A0 = jnp.where(form == 0, Ac[0], jnp.where(form == 2, Dl[:, 0], cst[0][:, None]))
+    A1 = jnp.where(form == 0, Ac[1], jnp.where(form == 2, Dl[:, 1], cst[1][:, None]))
+    return A0, A1, Ac[2]
+
+
+def _rows_by_sum(tape):
+    """The history rows in use of a concrete tape sorted by the sums they weigh:
+    plain only, both, weighted only. Returns `(order, p, w)`: the rows, and the
+    ranges `[0, p)` that weigh the plain sum and `[w, rows)` the weighted one."""
+    hcst = np.asarray(tape.hcst)[:, : int(np.asarray(tape.blocks)[2])]
+    plain, weighted = hcst[2] != 0, hcst[3] != 0
+    groups = [plain & ~weighted, plain & weighted, ~plain & weighted]
+    order = np.concatenate([np.flatnonzero(g) for g in groups]).astype(np.int32)
+    return order, int(plain.sum()), int(groups[0].sum())
+
+
+def _static_sums(K, u0, u1, p, w):
+    r"""`_windowed_sums` over every row in use at once, for rows sorted by
+    `_rows_by_sum`: each sum over the rows that weigh it only. Returns `index(k)`
+    and the branches, functions of `(k, Hp, R)`."""
+
+    def branch(b):
+        span = (b + 1) * _SPAN
+
+        def fn(k, Hp, R):
+            rows, W = Hp.shape[1], Hp.shape[2]
+            inv = 1.0 / k.astype(Hp.dtype)
+            q = lax.dynamic_slice_in_dim(R, K - k + 1, span, 0)
+            pq = lambda lo, hi: [Hp[1 + i, lo:hi] * q[i, lo:hi] for i in range(span)]
+            plain = _tree_sum(pq(0, p)) if p else jnp.zeros((0, W), Hp.dtype)
+            weighted = _tree_sum([float(i) * x for i, x in enumerate(pq(w, rows), 1)])
+            both = u0[w:p] * plain[w:] + u1[w:p] * (weighted[: p - w] * inv)
+            return jnp.concatenate(
+                [u0[:w] * plain[:w], both, u1[p:] * (weighted[p - w :] * inv)]
+            )
+
+        return fn
+
+    branches = [branch(b) for b in range(max(1, -(-(K - 2) // _SPAN)))]
+    index = lambda k: (jnp.maximum(k, 2) - 2) // _SPAN
+    return index, branches
+
+
+def _order_k_static(runs, Y, A, inner):
+    """`_order_k` for a concrete tape: run by run (`_runs`), each one operation
+    over its nodes, its operands gathered by constant indices, its outputs a
+    fixed slice."""
+    W = Y.shape[1]
+    for s, i, n, gat in runs:
+        X, P, Q = _take(Y, gat.reshape(-1)).reshape(3, n, W)
+        A0, A1, A2 = (a[i : i + n] for a in A)
+        Y = Y.at[s : s + n].set(A0 * X + A1 * P + A2 * Q + inner[i : i + n])
+    return Y
+
+
+def inline_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False):
+    r"""`compact_coefficients` of a concrete tape, for a program compiled inside a
+    caller's `jit` for this tape alone: order 0's switches with the tape's
+    opcodes only; at orders $\ge 1$ the blocks merged into runs unrolled, their
+    forms and operands' indices constants (no switch, no dynamic index), each
+    inner sum over the rows that weigh it, in a loop over orders (a program that
+    grows with the tape's levels, not with levels x orders)."""
+    static = tape
+    opcodes = frozenset(np.unique(np.asarray(tape.op0)).tolist())
+    seg, _, _ = bounds(tape)
+    tape = jax.tree.map(jnp.asarray, tape)
+    W, dtype = t.shape[0], t.dtype
+    m = tape.inputs.shape[0]
+    first = int(static.inputs[0])
+    # --- order 0
+    Y, D, state = _inputs0(tape, t, ys, params)
+    Y, D = _order0(tape, Y, D, trig, seg, _family_fns(opcodes))
+    Y, D = _at(Y, tape.perm), _at(D, tape.perm)
+    # --- orders 1..K-1 of the nodes, 2..K of the state
+    runs, node = _runs(static)
+    rows, p, w = _rows_by_sum(static)
+    at_row = np.full((tape.hist.shape[1] + 1,), rows.shape[0], np.int32)
+    at_row[rows] = np.arange(rows.shape[0])
+    node["hrow"] = at_row[node["hrow"]]  # (a linear node's: past the rows)
+    P0, Q0 = _at(Y, tape.hist[0]), _at(Y, tape.hist[1])
+    F, u0, u1 = _row_form(tape, D, P0, Q0)
+    F, u0, u1, P0, Q0 = F[:, rows], u0[rows], u1[rows], P0[rows], Q0[rows]
+    hist = np.asarray(static.hist)[:, rows]
+    A = _run_form(node, F, D)
+    index, sums = _static_sums(K, u0, u1, p, w)
+    # Histories, zero where not yet computed; Q's reversed (`_windowed_sums`).
+    Hp = jnp.zeros((K + _SPAN, rows.shape[0], W), dtype).at[0].set(P0)
+    R = jnp.zeros((2 * K + _SPAN, rows.shape[0], W), dtype).at[K].set(Q0)
+    Z = jnp.zeros((m - 1, K + 1, W), dtype)
+    Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(_at(Y, tape.outs))
+
+    def order(k, carry):
+        Y, Hp, R, Z = carry
+        k = k.astype(jnp.int32)
+        t_k = jnp.where(k == 1, 1.0, 0.0).astype(dtype) * jnp.ones((1, W), dtype)
+        y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
+        Y = Y.at[first : first + m].set(jnp.concatenate([t_k, y_k]))
+        inner = lax.switch(index(k), sums, k, Hp, R)
+        inner = _at(jnp.concatenate([inner, jnp.zeros((1, W), dtype)]), node["hrow"])
+        Y = _order_k_static(runs, Y, A, inner)
+        PQ = _take(Y, hist.reshape(-1)).reshape(2, 1, -1, W)
+        Hp = lax.dynamic_update_index_in_dim(Hp, PQ[0], k, 0)
+        R = lax.dynamic_update_index_in_dim(R, PQ[1], K - k, 0)
+        f = _at(Y, tape.outs) / (k + 1).astype(dtype)
+        return Y, Hp, R, lax.dynamic_update_index_in_dim(Z, f, k + 1, 1)
+
+    # (Every slot a run writes is written at every order before it is read; the
+    # others, constants and parameters, are zero above order 0.)
+    if K > 1:
+        Z = lax.fori_loop(1, K, order, (jnp.zeros_like(Y), Hp, R, Z))[3]
     return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
 
 
@@ -1421,9 +1602,58 @@ def compact_values(tape: CompactTape, t, ys, params, trig=False):
     return _at(Y, _at(tape.perm, tape.outs))
 
 
-@functools.partial(jax.jit, static_argnames=("K", "trig", "bounds", "opcodes"))
-def _jitted(tape, t, ys, params, K, trig, bounds, opcodes=None):
-    return compact_coefficients(tape, K, t, ys, params, trig, bounds, opcodes)
+@functools.partial(jax.jit, static_argnames=("K", "trig", "bounds"))
+def _jitted(tape, t, ys, params, K, trig, bounds):
+    return compact_coefficients(tape, K, t, ys, params, trig, bounds)
+
+
+class _Concrete:
+    """A concrete tape as a static argument of `jax.jit`: equal to another of the
+    same contents, so that a program traced again (diffrax traces a step several
+    times) finds the first trace."""
+
+    def __init__(self, tape):
+        self.tape = tape
+        digest = hashlib.sha1()
+        for leaf in jax.tree.leaves(tape):
+            leaf = np.asarray(leaf)
+            digest.update(f"{leaf.dtype}{leaf.shape}".encode() + leaf.tobytes())
+        self.key = (digest.hexdigest(), tape.families, tape.caps0)
+
+    def __hash__(self):
+        return hash(self.key)
+
+    def __eq__(self, other):
+        return isinstance(other, _Concrete) and self.key == other.key
+
+
+@functools.partial(jax.jit, static_argnames=("tape", "K", "trig"))
+def _inline_jitted(tape, t, ys, params, K, trig):
+    return inline_coefficients(tape.tape, K, t, ys, params, trig)
+
+
+# Lanes per pass of the inline program: more lanes run in passes of this many (a
+# loop), whose arrays stay in the CPU's caches.
+_LANES = 256
+
+
+def _in_passes(fn, t, ys, params):
+    """`fn(t, ys, params)` (lists of `(W,)` arrays in, a list of lists of `(W,)`
+    arrays out) over `W > _LANES` lanes in passes of `_LANES` (a `lax.map`), the
+    last pass padded with copies of the last lane."""
+    W = t.shape[0]
+    n = -(-W // _LANES)
+    cut = lambda x: jnp.pad(x, (0, n * _LANES - W), mode="edge").reshape(n, _LANES)
+    rows = lambda xs: jnp.stack([cut(x) for x in xs], 1) if xs else None
+
+    def one(args):
+        t, ys, params = args
+        out = fn(t, list(ys), [] if params is None else list(params))
+        return jnp.stack([jnp.stack(o) for o in out])
+
+    out = lax.map(one, (cut(t), rows(ys), rows(params)))  # (n, entries, K + 1, C)
+    out = jnp.moveaxis(out, 0, 2).reshape(out.shape[1], out.shape[2], -1)[..., :W]
+    return [list(o) for o in out]
 
 
 def traced_once(tape: CompactTape, K: int, t, ys, params, trig=False):
@@ -1439,15 +1669,20 @@ def lane_function(tape: CompactTape, K: int, trig=False, inline=False):
     keep the lanes innermost, where `vmap` would add a leading axis to every
     array, each lane then a strided access). Its derivatives are those of the
     plain program (`jax.custom_jvp`: forward and reverse mode). `inline`: the
-    program is compiled inside a caller's `jit`, for this tape alone (order 0's
-    switches with the tape's opcodes only: `compact_coefficients`)."""
+    program is compiled inside a caller's `jit`, for this tape alone
+    (`inline_coefficients`), over many lanes in passes (`_in_passes`)."""
     from jax import custom_batching
 
     loops = bounds(tape)
-    ops = frozenset(np.unique(np.asarray(tape.op0)).tolist()) if inline else None
+    concrete = _Concrete(tape) if inline else None
 
     def plain(t, ys, params):
-        return _jitted(tape, t, list(ys), list(params), K, trig, loops, ops)
+        if inline:
+            one = lambda t, ys, params: _inline_jitted(concrete, t, ys, params, K, trig)
+            if t.shape[0] > _LANES:
+                return _in_passes(one, t, list(ys), list(params))
+            return one(t, list(ys), list(params))
+        return _jitted(tape, t, list(ys), list(params), K, trig, loops)
 
     @custom_batching.custom_vmap
     def lanes(t, ys, params):
