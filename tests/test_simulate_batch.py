@@ -337,6 +337,32 @@ def test_tiers_stay_compact_where_the_specialized_step_would_loop(monkeypatch):
     assert calls == [1]
 
 
+def test_the_tiers_count_the_specialized_steps_own_nodes(monkeypatch):
+    """The tier rule's count of the specialized step's nodes is the step's own (L's
+    constants reach that program as arguments, which it keeps as nodes: more than
+    the compact tape's program, whose constants fold)."""
+    from lagrax._jaxpr.canonical import canonical_lagrangian
+    from lagrax._trajectory import batch
+
+    seen = []
+    real = batch.SystemTaylorStepper.coefficients
+
+    def spy(self, *args):
+        seen.append(len(self.system.prog.nodes))
+        return real(self, *args)
+
+    monkeypatch.setattr(batch.SystemTaylorStepper, "coefficients", spy)
+    monkeypatch.setenv("LAGRAX_COMPACT", "0")
+    L = _double_pendulum(9.81)
+    L_c, consts = canonical_lagrangian(L, jnp.float64, 2)
+    _, nodes, step_nodes = batch._tape(L_c, consts, None, 2, jnp.float64)
+    q0 = jnp.zeros((3, 2))
+    jax.make_jaxpr(
+        lambda q: lagrax.simulate_batch(L, q, q, 0.0, 0.1, solver=TAYLOR).ys
+    )(q0)
+    assert seen and set(seen) == {step_nodes} and step_nodes > nodes
+
+
 def test_tiers_compile_the_specialized_program_later(monkeypatch, executable_cache):
     """Where a core is idle, from the second call of a Lagrangian on the compact
     tier, its specialized program compiles in a worker process; the compact tier

@@ -58,8 +58,9 @@ from .simulate import elemental, simulate
 from .term import _LagrangeVectorField, BoundLagrangian
 
 
-# The most equations (orders x nodes of the system's program) a step unrolls.
-_UNROLL_BUDGET = 8000
+# The most equations (orders x nodes of the system's program, L's constants among
+# its arguments) a step unrolls: a chain of six pendulums at order 16 (8,208).
+_UNROLL_BUDGET = 10_000
 
 # Per-lane outcome codes of the loop, mapped onto diffrax.RESULTS at the end.
 _RUNNING, _DONE, _MAX_STEPS, _NONFINITE = 0, 1, 2, 3
@@ -720,13 +721,13 @@ def _tiered(call, origin, n, dtype):
     found = _tape(cfg.L, consts, cfg.force, n, dtype)
     if found is None:
         return specialized()
-    tape, nodes = found
+    tape, nodes, step_nodes = found
     estimate = _compile_estimate(nodes, cfg.order)
     if not only and estimate < _COMPACT_FROM:
         return specialized()
     # Beyond the unroll budget the specialized step loops over the orders, and runs
     # slower than the compact program (benchmarks/README.md): the compact tier stays.
-    rents = not only and cfg.order * nodes <= _UNROLL_BUDGET
+    rents = not only and cfg.order * step_nodes <= _UNROLL_BUDGET
     # From the second call with this configuration (a job that repeats), where a
     # core is idle, the specialized program compiles there meanwhile and takes over
     # once on disk; else, the ski rental.
@@ -785,10 +786,11 @@ def _known(jitted, options, origin, args) -> bool:
 
 
 def _tape(L_c, consts, force, n, dtype):
-    """`(tape, nodes)`: the compact tape of the system's equations (the constants'
-    values as its own) and the number of nodes of its program, or None where it
-    has none (a primitive without a compact opcode, a program not evaluated entry
-    by entry)."""
+    """`(tape, nodes, step_nodes)`: the compact tape of the system's equations (the
+    constants' values as its own), the number of nodes of its program, and of the
+    specialized step's (whose constants are arguments, not folded), or None where
+    it has no tape (a primitive without a compact opcode, a program not evaluated
+    entry by entry)."""
     try:
         values = tuple((np.shape(c), np.asarray(c).tobytes()) for c in consts)
         key = (L_c, force, n, np.dtype(dtype).name, values)
@@ -810,7 +812,15 @@ def _tape(L_c, consts, force, n, dtype):
         tape = compact.build(
             prog, prog.inputs, prog.params, prog.outs, dtype, size=_SIZE_CLASS
         )
-        found = tape, len(prog.nodes)
+        counted = []
+
+        def count(*consts):
+            system = _system(L_c, list(consts), force, zeros, zeros)
+            counted.append(len(system.prog.nodes))
+            return zeros
+
+        jax.make_jaxpr(count)(*consts)
+        found = tape, len(prog.nodes), counted[0]
     except (NotImplementedError, TypeError, ValueError):
         found = None
     if key is not None:
