@@ -36,7 +36,9 @@ Methods, each group in a fresh worker process:
   compile option `lagrax.Taylor` asks for on a CPU), rtol = atol = tol; on the whole
   machine the batch is split over one JAX CPU device per core with `jax.shard_map`.
 - `lagrax.simulate_batch` with `lagrax.Taylor(order=K)`: its own compiled loop over
-  refilling lanes (one per device on the whole machine).
+  refilling lanes (one per device on the whole machine), on the tier a new `L`'s
+  calls take (a chain: the compact program) and, for the chains, on the specialized
+  program (`LAGRAX_COMPACT=0`).
 
 "1 core" rows run under `taskset -c 1` (the whole worker process, both libraries);
 "whole machine" rows unpinned. A work-precision chart (seconds per trajectory
@@ -480,8 +482,22 @@ def _lagrax_methods(quick, n=2, width=256):
         run.taylor = isinstance(solver, lagrax.Taylor)
         return run
 
-    def batch(order):
+    def batch(order, tier=None):
         def run(L, q0, qdot0, tol):
+            # `tier` "0": the specialized program from the first call (by default a
+            # chain's calls here, each at its own tolerance, stay on the compact one).
+            saved = os.environ.get("LAGRAX_COMPACT")
+            if tier is not None:
+                os.environ["LAGRAX_COMPACT"] = tier
+            try:
+                return _batch_run(order, L, q0, qdot0, tol)
+            finally:
+                if saved is None:
+                    os.environ.pop("LAGRAX_COMPACT", None)
+                else:
+                    os.environ["LAGRAX_COMPACT"] = saved
+
+        def _batch_run(order, L, q0, qdot0, tol):
             sol = lagrax.simulate_batch(
                 L,
                 q0,
@@ -514,6 +530,13 @@ def _lagrax_methods(quick, n=2, width=256):
             for k in TAYLOR_ORDERS["simulate_batch"]
             if n <= TAYLOR_MAX_N["simulate_batch"].get(k, n)
         },
+        # (The double pendulum's specialized compile is short enough to be the
+        # default's first tier.)
+        **(
+            {"lagrax simulate_batch Taylor-16, specialized": batch(16, "0")}
+            if n > 2
+            else {}
+        ),
     }
 
 
