@@ -696,7 +696,7 @@ _OUT_TREE = jax.tree.structure((0,) * 8)  # (`_assemble`'s outputs)
 # instead (`executables.compile_later`), which takes over once on disk.
 
 # Estimated specialized compiles shorter than this (s) are not worth a tier.
-_COMPACT_FROM = 8.0
+_COMPACT_FROM = 2.0
 # Seconds spent on the compact program per configuration.
 _SPENT: collections.Counter = collections.Counter()
 _TAPES: collections.OrderedDict = collections.OrderedDict()
@@ -838,9 +838,10 @@ _SIZE_CLASS = dict(families=(compact.AFFINE, compact.RARE, compact.LOGIC,
 
 def _compile_estimate(nodes, order) -> float:
     """Seconds the specialized program takes to trace and compile, from the nodes of
-    the system's program and the order (fitted to the double pendulum and chains
-    of 2 and 4 pendulums at order 16, one core)."""
-    return 4.5 * (nodes / 41.0) * (order / 16.0) ** 1.5
+    the tape's program and the order: XLA's compile grows faster than the program
+    (fitted to the double pendulum at order 14 and chains of 4 and 6 pendulums at
+    order 16, one core)."""
+    return 20.0 * (nodes / 244.0) ** 1.9 * (order / 16.0) ** 1.5
 
 
 def _notify(cfg, estimate):
