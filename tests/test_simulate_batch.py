@@ -355,7 +355,8 @@ def test_the_tiers_count_the_specialized_steps_own_nodes(monkeypatch):
     monkeypatch.setenv("LAGRAX_COMPACT", "0")
     L = _double_pendulum(9.81)
     L_c, consts = canonical_lagrangian(L, jnp.float64, 2)
-    _, nodes, step_nodes = batch._tape(L_c, consts, None, 2, jnp.float64)
+    _, nodes = batch._tape(L_c, consts, None, 2, jnp.float64)
+    step_nodes = batch._step_nodes(L_c, consts, None, 2, jnp.float64)
     q0 = jnp.zeros((3, 2))
     jax.make_jaxpr(
         lambda q: lagrax.simulate_batch(L, q, q, 0.0, 0.1, solver=TAYLOR).ys

@@ -700,6 +700,7 @@ _COMPACT_FROM = 2.0
 # Seconds spent on the compact program per configuration.
 _SPENT: collections.Counter = collections.Counter()
 _TAPES: collections.OrderedDict = collections.OrderedDict()
+_STEP_NODES: dict = {}
 _MAX_TAPES = 64
 _NOTIFIED: set = set()
 
@@ -721,13 +722,15 @@ def _tiered(call, origin, n, dtype):
     found = _tape(cfg.L, consts, cfg.force, n, dtype)
     if found is None:
         return specialized()
-    tape, nodes, step_nodes = found
+    tape, nodes = found
     estimate = _compile_estimate(nodes, cfg.order)
     if not only and estimate < _COMPACT_FROM:
         return specialized()
     # Beyond the unroll budget the specialized step loops over the orders, and runs
     # slower than the compact program (benchmarks/README.md): the compact tier stays.
-    rents = not only and cfg.order * step_nodes <= _UNROLL_BUDGET
+    rents = not only and (
+        cfg.order * _step_nodes(cfg.L, consts, cfg.force, n, dtype) <= _UNROLL_BUDGET
+    )
     # From the second call with this configuration (a job that repeats), where a
     # core is idle, the specialized program compiles there meanwhile and takes over
     # once on disk; else, the ski rental.
@@ -786,11 +789,10 @@ def _known(jitted, options, origin, args) -> bool:
 
 
 def _tape(L_c, consts, force, n, dtype):
-    """`(tape, nodes, step_nodes)`: the compact tape of the system's equations (the
-    constants' values as its own), the number of nodes of its program, and of the
-    specialized step's (whose constants are arguments, not folded), or None where
-    it has no tape (a primitive without a compact opcode, a program not evaluated
-    entry by entry)."""
+    """`(tape, nodes)`: the compact tape of the system's equations (the constants'
+    values as its own) and the number of nodes of its program, or None where it
+    has none (a primitive without a compact opcode, a program not evaluated entry
+    by entry)."""
     try:
         values = tuple((np.shape(c), np.asarray(c).tobytes()) for c in consts)
         key = (L_c, force, n, np.dtype(dtype).name, values)
@@ -812,15 +814,7 @@ def _tape(L_c, consts, force, n, dtype):
         tape = compact.build(
             prog, prog.inputs, prog.params, prog.outs, dtype, size=_SIZE_CLASS
         )
-        counted = []
-
-        def count(*consts):
-            system = _system(L_c, list(consts), force, zeros, zeros)
-            counted.append(len(system.prog.nodes))
-            return zeros
-
-        jax.make_jaxpr(count)(*consts)
-        found = tape, len(prog.nodes), counted[0]
+        found = tape, len(prog.nodes)
     except (NotImplementedError, TypeError, ValueError):
         found = None
     if key is not None:
@@ -828,6 +822,37 @@ def _tape(L_c, consts, force, n, dtype):
         if len(_TAPES) > _MAX_TAPES:
             _TAPES.popitem(last=False)
     return found
+
+
+def _step_nodes(L_c, consts, force, n, dtype) -> int:
+    """The number of nodes of the specialized step's program, whose constants are
+    arguments (traced: a constant's operations are nodes, where the tape's NumPy
+    values fold), kept per Lagrangian and the constants' shapes (not values)."""
+    consts = [as_array(c) for c in consts]
+    try:
+        shapes = tuple((c.shape, c.dtype.name) for c in consts)
+        key = (L_c, force, n, np.dtype(dtype).name, shapes)
+        hash(key)
+    except TypeError:
+        key = None
+    if key is not None and key in _STEP_NODES:
+        return _STEP_NODES[key]
+    zeros = np.zeros((n,), dtype)
+    counted = []
+
+    def count(*consts):
+        counted.append(len(_system(L_c, list(consts), force, zeros, zeros).prog.nodes))
+        return zeros
+
+    try:
+        jax.make_jaxpr(count)(*consts)
+    except (NotImplementedError, TypeError, ValueError):
+        return 0  # (the specialized program then decides for itself)
+    if key is not None:
+        _STEP_NODES[key] = counted[0]
+        if len(_STEP_NODES) > _MAX_TAPES:
+            _STEP_NODES.pop(next(iter(_STEP_NODES)))
+    return counted[0]
 
 
 # Every compact program holds these families at order 0 (so that most Lagrangians
