@@ -1148,6 +1148,17 @@ def _inner_sums(K):
     return [branch(k) for k in range(1, K)]
 
 
+def _windows(K):
+    """The number of windows of `_SPAN` orders that the inner terms of orders
+    $2..K-1$ need."""
+    return max(1, -(-(K - 2) // _SPAN))
+
+
+def _window_index(k):
+    """The window (a branch of `_windowed_sums`) whose span fits order $k$'s terms."""
+    return (jnp.maximum(k, 2) - 2) // _SPAN
+
+
 def _windowed_sums(K, C, chunks):
     r"""`_inner_sums`' terms for the rows in use (`chunks` chunks of `C` rows),
     from `Hp` (`(K + _SPAN, H, W)`) and `R` (`(2K + _SPAN, H, W)`) holding $Q_i$
@@ -1182,9 +1193,7 @@ def _windowed_sums(K, C, chunks):
 
         return fn
 
-    branches = [branch(b) for b in range(max(1, -(-(K - 2) // _SPAN)))]
-    index = lambda k: (jnp.maximum(k, 2) - 2) // _SPAN
-    return index, branches
+    return _window_index, [branch(b) for b in range(_windows(K))]
 
 
 def _row_form(tape, D, P0, Q0):
@@ -1444,9 +1453,7 @@ def _static_sums(K, u0, u1, p, w):
 
         return fn
 
-    branches = [branch(b) for b in range(max(1, -(-(K - 2) // _SPAN)))]
-    index = lambda k: (jnp.maximum(k, 2) - 2) // _SPAN
-    return index, branches
+    return _window_index, [branch(b) for b in range(_windows(K))]
 
 
 def _order_k_static(runs, Y, A, inner):
