@@ -700,7 +700,7 @@ _COMPACT_FROM = 2.0
 # Seconds spent on the compact program per configuration.
 _SPENT: collections.Counter = collections.Counter()
 _TAPES: collections.OrderedDict = collections.OrderedDict()
-_STEP_NODES: dict = {}
+_STEP_NODES: collections.OrderedDict = collections.OrderedDict()
 _MAX_TAPES = 64
 _NOTIFIED: set = set()
 
@@ -788,6 +788,29 @@ def _known(jitted, options, origin, args) -> bool:
     return executables.available(jitted, options, *args, n_static=2, origin=origin)
 
 
+def _kept(store, key, make):
+    """`make()`, kept in `store` under `key` (the least recently used dropped past
+    `_MAX_TAPES`); made afresh where `key` is None (values that do not hash)."""
+    if key is None:
+        return make()
+    if key in store:
+        store.move_to_end(key)
+        return store[key]
+    value = store[key] = make()
+    if len(store) > _MAX_TAPES:
+        store.popitem(last=False)
+    return value
+
+
+def _key(*parts):
+    """`parts` as a dictionary key, or None where they do not hash."""
+    try:
+        hash(parts)
+    except TypeError:
+        return None
+    return parts
+
+
 def _tape(L_c, consts, force, n, dtype):
     """`(tape, nodes)`: the compact tape of the system's equations (the constants'
     values as its own) and the number of nodes of its program, or None where it
@@ -795,64 +818,54 @@ def _tape(L_c, consts, force, n, dtype):
     by entry)."""
     try:
         values = tuple((np.shape(c), np.asarray(c).tobytes()) for c in consts)
-        key = (L_c, force, n, np.dtype(dtype).name, values)
-        hash(key)
+        key = _key(L_c, force, n, np.dtype(dtype).name, values)
     except TypeError:
         key = None
-    if key is not None and key in _TAPES:
-        _TAPES.move_to_end(key)
-        return _TAPES[key]
-    try:
-        # (NumPy values: `jnp` would compile a small program for each on a
-        # process's first call.)
-        zeros = np.zeros((n,), dtype)
-        consts = [as_array(c) for c in consts]
-        system = _system(L_c, consts, force, zeros, zeros)
-        if not system.scalar:
-            raise NotImplementedError("not scalarized")
-        prog = system.prog
-        tape = compact.build(
-            prog, prog.inputs, prog.params, prog.outs, dtype, size=_SIZE_CLASS
-        )
-        found = tape, len(prog.nodes)
-    except (NotImplementedError, TypeError, ValueError):
-        found = None
-    if key is not None:
-        _TAPES[key] = found
-        if len(_TAPES) > _MAX_TAPES:
-            _TAPES.popitem(last=False)
-    return found
+
+    def make():
+        try:
+            # (NumPy values: `jnp` would compile a small program for each on a
+            # process's first call.)
+            zeros = np.zeros((n,), dtype)
+            system = _system(L_c, [as_array(c) for c in consts], force, zeros, zeros)
+            if not system.scalar:
+                raise NotImplementedError("not scalarized")
+            prog = system.prog
+            tape = compact.build(
+                prog, prog.inputs, prog.params, prog.outs, dtype, size=_SIZE_CLASS
+            )
+            return tape, len(prog.nodes)
+        except (NotImplementedError, TypeError, ValueError):
+            return None
+
+    return _kept(_TAPES, key, make)
 
 
 def _step_nodes(L_c, consts, force, n, dtype) -> int:
     """The number of nodes of the specialized step's program, whose constants are
     arguments (traced: a constant's operations are nodes, where the tape's NumPy
-    values fold), kept per Lagrangian and the constants' shapes (not values)."""
+    values fold), kept per Lagrangian and the constants' shapes (not values); 0
+    where it cannot be traced here (the specialized program then decides)."""
     consts = [as_array(c) for c in consts]
-    try:
-        shapes = tuple((c.shape, c.dtype.name) for c in consts)
-        key = (L_c, force, n, np.dtype(dtype).name, shapes)
-        hash(key)
-    except TypeError:
-        key = None
-    if key is not None and key in _STEP_NODES:
-        return _STEP_NODES[key]
+    shapes = tuple((c.shape, c.dtype.name) for c in consts)
+    key = _key(L_c, force, n, np.dtype(dtype).name, shapes)
     zeros = np.zeros((n,), dtype)
-    counted = []
 
-    def count(*consts):
-        counted.append(len(_system(L_c, list(consts), force, zeros, zeros).prog.nodes))
-        return zeros
+    def make():
+        counted = []
 
-    try:
-        jax.make_jaxpr(count)(*consts)
-    except (NotImplementedError, TypeError, ValueError):
-        return 0  # (the specialized program then decides for itself)
-    if key is not None:
-        _STEP_NODES[key] = counted[0]
-        if len(_STEP_NODES) > _MAX_TAPES:
-            _STEP_NODES.pop(next(iter(_STEP_NODES)))
-    return counted[0]
+        def count(*consts):
+            system = _system(L_c, list(consts), force, zeros, zeros)
+            counted.append(len(system.prog.nodes))
+            return zeros
+
+        try:
+            jax.make_jaxpr(count)(*consts)
+        except (NotImplementedError, TypeError, ValueError):
+            return 0
+        return counted[0]
+
+    return _kept(_STEP_NODES, key, make)
 
 
 # Every compact program holds these families at order 0 (so that most Lagrangians
