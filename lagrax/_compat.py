@@ -60,6 +60,25 @@ def one_thread_environment() -> dict:
     return {_POOL_VARIABLES[0]: "1"}
 
 
+# XLA's CPU runtime runs a loop op by op, each op of each iteration dispatched on its
+# own; a while loop whose one iteration reads and writes fewer bytes than this backend
+# option's threshold it compiles as one function instead ("small while loop
+# hoisting"), which runs the compact tiers' programs of many short loops faster and
+# the specialized unrolled ones slower (benchmarks/README.md). No compile option
+# reaches a backend option (a map that `compiler_options` cannot set): only the
+# `XLA_FLAGS` of a process started for the program.
+_WHOLE_LOOPS = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
+
+
+def whole_loop_environment(env: dict) -> dict:
+    """`env` (a new process's environment) with `XLA_FLAGS` asking XLA's CPU compiler
+    to compile each while loop of a program as one function, whatever its size (after
+    any flags `env` holds). Where a later XLA drops the option, its programs compile
+    as in any other process: only slower, as before."""
+    flags = env.get("XLA_FLAGS", "")
+    return {**env, "XLA_FLAGS": f"{flags} {_WHOLE_LOOPS}{1 << 62}".strip()}
+
+
 def splits_loops() -> bool:
     """Whether XLA may split a program's loops across threads in this process: it
     may run on more than one core and no pool variable keeps it to one thread (the

@@ -140,9 +140,11 @@ out = executables.call(f, "apart", jax.tree.structure(x), x, y)
 here = jax.jit(fun, compiler_options=options).lower(x, y).compile()
 ((compiled, _),) = executables._LOADED.values()
 parts = [c.as_text().count('outer_dimension_partitions":["') for c in (here, compiled)]
+whole = [c.as_text().count('xla_cpu_small_call="true"') for c in (here, compiled)]
 np.save(sys.argv[1], np.asarray(out))
 same = bool(np.array_equal(out, here(x, y)))
-print(json.dumps(dict(stats=dict(executables.STATS), parts=parts, same=same)))
+stats = dict(executables.STATS)
+print(json.dumps(dict(stats=stats, parts=parts, whole=whole, same=same)))
 """
 
 
@@ -163,8 +165,10 @@ def test_a_program_compiled_apart_runs_twice_on_one_cache(tmp_path):
     first, second = runs
     assert first["stats"] == {"compiled apart": 1, "written": 1}, first
     assert second["stats"] == {"loaded": 1}, second
-    # Split where compiled in the process, whole where compiled apart.
+    # Split where compiled in the process, whole where compiled apart, its loop one
+    # function there (`_compat.whole_loop_environment`), not here.
     assert first["parts"][0] >= 1 and first["parts"][1] == 0 and second["parts"][1] == 0
+    assert first["whole"][0] == 0 and first["whole"][1] >= 1 and second["whole"][1] >= 1
     assert first["same"] and second["same"]
     np.testing.assert_array_equal(
         np.load(tmp_path / "first.npy"), np.load(tmp_path / "second.npy")

@@ -264,3 +264,31 @@ def test_one_thread_environment_keeps_a_programs_loops_whole():
         assert proc.returncode == 0, proc.stderr[-2000:]
         counts[name] = int(proc.stdout.split()[-1])
     assert counts["one"] == 0 and counts["two"] >= 1, counts
+
+
+_WHOLE = """
+import jax, jax.numpy as jnp
+f = lambda x: jax.lax.fori_loop(0, 3, lambda i, x: jnp.sin(x) * 1.0001 + x, x)
+text = jax.jit(f).lower(jnp.ones(100_000)).compile().as_text()
+print(text.count('xla_cpu_small_call="true"'))
+"""
+
+
+def test_whole_loop_environment_compiles_a_loop_as_one_function():
+    """In a process started with `whole_loop_environment`, XLA compiles this loop
+    (800 kB an iteration, over XLA's default threshold) as one function; without,
+    it does not. If the first fails, XLA no longer reads the option (the compact
+    programs `lagrax._cache.apart` compiles run op by op again: slower, not wrong);
+    the user's own flags are kept."""
+    counts = {}
+    for name in ("whole", "plain"):
+        env = {**os.environ, "XLA_FLAGS": "--xla_cpu_enable_fast_math=false"}
+        if name == "whole":
+            env = _compat.whole_loop_environment(env)
+            assert env["XLA_FLAGS"].startswith("--xla_cpu_enable_fast_math=false ")
+        proc = subprocess.run(
+            [sys.executable, "-c", _WHOLE], env=env, capture_output=True, text=True
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        counts[name] = int(proc.stdout.split()[-1])
+    assert counts["whole"] >= 1 and counts["plain"] == 0, counts

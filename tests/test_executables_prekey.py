@@ -60,7 +60,10 @@ def test_a_later_process_loads_by_prekey_without_lowering(cache):
     folder, loads, new_process = cache
     first = lagrax.sweep_periods(pendulum.lagrangian(g=1.3), Q0, **SWEEP)
     assert loads == [False]
-    assert len(_names(folder, ".bin")) == 1 and len(_names(folder, ".key")) == 1
+    # (Keys "d…": answers `executables.remembered` keeps, e.g. which compile options
+    # the installed XLA takes, asked by whichever test of a process comes first.)
+    keys = [n for n in _names(folder, ".key") if not n.startswith("d")]
+    assert len(_names(folder, ".bin")) == 1 and len(keys) == 1
     # A later process: the same script, loaded without lowering, bit for bit.
     new_process()
     again = lagrax.sweep_periods(pendulum.lagrangian(g=1.3), Q0, **SWEEP)
