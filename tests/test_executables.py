@@ -277,6 +277,7 @@ def test_a_program_the_worker_cannot_compile_is_compiled_here(
     monkeypatch.setenv("LAGRAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(executables, "_LOADED", {})
     monkeypatch.setattr(executables, "STATS", collections.Counter())
+    monkeypatch.setattr(apart, "wanted", lambda: True)
     monkeypatch.setattr(apart, "_WORKER", str(tmp_path / "missing.py"))
     f = executables.program(lambda x, y: jnp.sin(x) * y)
     x, y = jnp.linspace(0.0, 1.0, 5), jnp.float64(2.0)

@@ -390,6 +390,11 @@ def test_tiers_compile_the_specialized_program_later(monkeypatch, executable_cac
     run = _two_oscillators
     first = run()  # (the compact program compiled and written: the tier's first)
     assert not calls and executables._LATER == {}
+    # Compiled apart with its loops each one function (`executables.program`).
+    (entry,) = folder.glob("*.bin")
+    text = executables._LOADED[entry.stem][0].as_text()
+    whole, loops = text.count('xla_cpu_small_call="true"'), text.count(" while(")
+    assert whole == loops > 1, (whole, loops)
     run()  # (the spent time is past the estimate: the job, not the rental)
     ((job),) = executables._LATER.values()
     assert not calls and job.state in ("running", "done")

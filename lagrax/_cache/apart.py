@@ -10,10 +10,11 @@ unsplit, it runs faster and on a third of the CPU time in a process that may use
 every core). A process cannot resize its pool once JAX has started, so those
 programs (`executables.program`, kept once per machine: they serve every Lagrangian
 of their class) are compiled in a new process started with a pool of one thread
-(`_compat.one_thread_environment`) and, since XLA dispatches each op of a loop's
-iteration on its own unless a process-wide flag says otherwise, with each loop
-compiled as one function (`_compat.whole_loop_environment`: those programs run
-faster, on one core too), from the program exported by `jax.export`; its
+(`_compat.one_thread_environment`) and, for `simulate_batch`'s (XLA dispatches
+each op of a loop's iteration on its own unless a process-wide flag says
+otherwise), with each loop compiled as one function
+(`_compat.whole_loop_environment`: faster, on one core too; a longer compile),
+from the program exported by `jax.export`; its
 executable comes back serialized, is written to the disk cache and loaded here.
 Anything that fails on the way (a program `jax.export` refuses, a worker that dies)
 leaves the compile to this process, as before: only slower."""
@@ -29,6 +30,12 @@ from .. import _compat
 
 
 _WORKER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "apart_worker.py")
+
+
+def wanted() -> bool:
+    """Whether a program compiled here would have its loops split (and compiling it
+    apart would not: it runs on one device)."""
+    return jax.local_device_count() == 1 and _compat.splits_loops()
 
 
 def compile_apart(fun, options, args, started=None, whole_loops=False) -> bytes | None:

@@ -173,18 +173,19 @@ def _key(static, args) -> str:
 _PLAIN: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def program(fun, options=None):
-    """`jax.jit(fun, compiler_options=options)`, for `call`: compiled in a process
-    of its own (`lagrax._cache.apart`), from `fun` itself (a jitted function with
-    compile options cannot be called inside another), whose XLA splits no loop
-    across threads and compiles each loop as one function. Worth a second more of
-    compile for a program of many short loops run often and compiled once per
-    machine (the compact tiers': each iteration's ops are not dispatched one by
-    one; on an idle second core its split loops gain little, on a busy one they
-    wait), not for `cached_call`'s programs, compiled per Lagrangian."""
+def program(fun, options=None, whole_loops=False):
+    """`jax.jit(fun, compiler_options=options)`, for `call`: where XLA would split
+    its loops across threads in this process, or with `whole_loops`, `call`
+    compiles it in a process of its own that does not (`lagrax._cache.apart`), from
+    `fun` itself (a jitted function with compile options cannot be called inside
+    another); `whole_loops`: there each loop compiled as one function, its ops not
+    dispatched one by one (a longer compile). Worth a second more of compile for a
+    program of many short loops run often and compiled once per machine (the
+    compact tiers': on an idle second core its split loops gain little, on a busy
+    one they wait), not for `cached_call`'s programs, compiled per Lagrangian."""
     jitted = jax.jit(fun, compiler_options=options)
     # (`jax.jit(fun)`, called inside the exported program, finds `fun`'s trace.)
-    _PLAIN[jitted] = (jax.jit(fun), dict(options or {}))
+    _PLAIN[jitted] = (jax.jit(fun), dict(options or {}), whole_loops)
     return jitted
 
 
@@ -213,12 +214,13 @@ def call(jitted, static, out_tree, *args):
 def _compile_apart(key, jitted, args, in_tree, out_tree):
     """`jitted(*args)` compiled in a process of its own (`apart`), loaded here and
     written under `key` where it is known to load safely; None where this process
-    compiles it (`jitted` not made by `program`, JAX's persistent cache is in use,
-    or the worker failed)."""
+    compiles it (`jitted` not made by `program`, nothing to gain apart, JAX's
+    persistent cache is in use, or the worker failed)."""
     plain = _PLAIN.get(jitted)
-    if plain is None or _jax_cache_in_use():
+    if plain is None or _jax_cache_in_use() or not (plain[2] or apart.wanted()):
         return None
-    payload = apart.compile_apart(*plain, args, whole_loops=True)
+    fun, options, whole_loops = plain
+    payload = apart.compile_apart(fun, options, args, whole_loops=whole_loops)
     if payload is None:
         return None
     try:

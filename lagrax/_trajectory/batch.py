@@ -433,6 +433,7 @@ def _compact_program(cfg, shape, cpu, devices):
     return executables.program(
         lambda *args: _assemble(*shape, *_looped(devices)(cfg, *args)),
         elemental_options() if cpu else {},
+        whole_loops=cpu,
     )
 
 
