@@ -999,7 +999,36 @@ def _sincos(op, prm, a, b, c, d0, d1, trig):
     return jnp.where(is_sin, s, co), one, jnp.where(is_sin, one, -one)
 
 
-_FAMILY_FNS = (_affine, _switched(_RARE_FNS), _switched(_LOGIC_FNS), _sincos,
+def _chained(fns):
+    """A family whose blocks hold one opcode each, for values only: every opcode's
+    value over the block and a select by the block's opcode (one loop; a switch
+    would be a kernel per opcode, each a part of the executable to load). `rem`,
+    a libm call per entry, behind a `cond`."""
+    names = [name for name in fns if name not in ("lincomb", "rem")]
+
+    def run(op, prm, a, b, c, trig):
+        op = op[0, 0]
+        value = a
+        for name in names:
+            value = jnp.where(op == OPCODE[name], fns[name](a, b, c, a, a)[0], value)
+        if "rem" in fns:
+            value = lax.cond(op == OPCODE["rem"], lambda: lax.rem(a, b), lambda: value)
+        return value
+
+    return run
+
+
+def _kept(values):
+    """A family function from `values`, a function of `(op, prm, a, b, c, trig)`
+    whose rows keep their per-lane coefficients (the logic family's)."""
+    return lambda op, prm, a, b, c, d0, d1, trig: (
+        values(op, prm, a, b, c, trig),
+        d0,
+        d1,
+    )
+
+
+_FAMILY_FNS = (_affine, _switched(_RARE_FNS), _kept(_chained(_LOGIC_FNS)), _sincos,
                _switched(_TRANS_FNS))  # fmt: skip
 _ONE_OPCODE = (RARE, LOGIC, TRANS)  # (families whose blocks hold one opcode)
 
@@ -1568,25 +1597,6 @@ def _inputs0(tape, t, ys, params):
     first = tape.inputs[0]  # (the inputs, then the parameters: consecutive slots)
     Y = lax.dynamic_update_slice(Y, rows, (first, jnp.asarray(0, jnp.int32)))
     return Y, jnp.zeros((S, 2, W), dtype), state
-
-
-def _chained(fns):
-    """A family whose blocks hold one opcode each, for values only: every opcode's
-    value over the block and a select by the block's opcode (one loop; a switch
-    would be a kernel per opcode, each a part of the executable to load). `rem`,
-    a libm call per entry, behind a `cond`."""
-    names = [name for name in fns if name not in ("lincomb", "rem")]
-
-    def run(op, prm, a, b, c, trig):
-        op = op[0, 0]
-        value = a
-        for name in names:
-            value = jnp.where(op == OPCODE[name], fns[name](a, b, c, a, a)[0], value)
-        if "rem" in fns:
-            value = lax.cond(op == OPCODE["rem"], lambda: lax.rem(a, b), lambda: value)
-        return value
-
-    return run
 
 
 def _first(fn):
