@@ -175,6 +175,54 @@ def test_the_compact_leg_ends_give_what_autodiff_gives():
     np.testing.assert_allclose(accels[1][1], central[1][1], rtol=1e-13, atol=1e-300)
 
 
+def test_a_pass_evaluates_the_point_tape_at_one_site(monkeypatch):
+    # The release points and the legs' ends (and the central difference's points)
+    # from one evaluation of the point tape in the program, with what the two
+    # evaluations apart give, bit for bit.
+    from lagrax._period import quantities as Q
+    from lagrax._period.finish import _central_points
+    from lagrax._period.units import lane_scales, lane_scales_from, release_point
+
+    dtype = jnp.float64
+    L = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - (1.0 + q[0]) ** 1.5
+    L_c, consts = canonical_lagrangian(L, dtype)
+    L_t, tapes = tier.tapes_of(L_c, consts, dtype)
+    params = [jnp.asarray(c, dtype).reshape(()) for c in consts]
+    params += [jnp.zeros((), dtype)] * (L_t.n_params - len(params))
+    q0 = jnp.array([0.3, -0.5, jnp.nan], dtype)
+    # Leg ends in lane units: the middle lane's at q = -1 (V'' infinite there).
+    ends = (jnp.array([0.2, 0.7, 1.1]), jnp.array([-0.1, -1.0, 0.4]), jnp.zeros(3))
+
+    def one_site(q0):
+        mech = CompactMechanics(L_t, [tapes, *params])
+
+        def run(out):
+            at = out[:, 0]
+            r = lane_scales_from(q0, at[Q.QDDOT], at[Q.MASS], at[Q.OK] != 0)
+            return r, ends, jnp.sum(at)
+
+        return mech.release_and_leg_ends(release_point(q0), run, _central_points)
+
+    def apart(q0):
+        mech = CompactMechanics(L_t, [tapes, *params])
+        r = lane_scales(L_t, q0, [tapes, *params])
+        return r, mech.leg_ends(r, *ends, _central_points)
+
+    sites = []
+    values = Q._values
+    monkeypatch.setattr(Q, "_values", lambda *a: sites.append(1) or values(*a))
+    jax.make_jaxpr(one_site)(q0)
+    assert len(sites) == 1
+    sites.clear()
+    jax.make_jaxpr(apart)(q0)
+    assert len(sites) >= 2  # (two sites; `vmap`'s rule traces one again)
+    r, got_ends, _, legs = jax.jit(one_site)(q0)
+    r_apart, legs_apart = jax.jit(apart)(q0)
+    assert not np.isfinite(legs_apart[0][3][1])  # (three iterations: central points)
+    same = lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    jax.tree.map(same, (r, legs), (r_apart, legs_apart))
+
+
 def test_the_compact_far_turning_point_gives_what_autodiff_gives():
     # The compact tier finds the far turning point in one loop (one evaluation site
     # of the tape), the root's tangent by the implicit function (a custom JVP): the

@@ -133,10 +133,11 @@ def _event_time(r, kind, sigma, raw, s_e, v_e, a_e, g, jerk, q_end, qdot_end):
     return t_e, q_end, qdot_end
 
 
-def finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
+def finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol, legs=None):
     """Statuses, event times and end states (`Ends`) and the error bound's sums in
     time units (`BoundTerms`) from the loop's output `out` (vmapped over lanes).
-    `rel`: each lane's `Release`."""
+    `rel`: each lane's `Release`; `legs`: `leg_ends`' outputs, where the caller
+    has them (`CompactMechanics.release_and_leg_ends`)."""
     mech = mechanics(L, consts)
     sums = (
         out.sums
@@ -147,7 +148,9 @@ def finish(L, consts, q0, targets, kinds, rtols, out, rel, energy_tol):
     per_lane = (targets, kinds, rtols, out.sigma, out.raw, s_e, x_e, v_e)
     # (The compact tier's quantities from one evaluation site: the central
     # difference's accelerations `accels` with the ends'.)
-    legs, accels = mech.leg_ends(rel, s_e, x_e, v_e, _central_points)
+    if legs is None:
+        legs = mech.leg_ends(rel, s_e, x_e, v_e, _central_points)
+    legs, accels = legs
     one = lambda *a: _lane_end(energy_tol, *a)
     ends, terms = jax.vmap(one)(rel, legs, *per_lane, *sums)
     # One fusion for the per-lane outputs, so that L's values at the two ends of the

@@ -6,8 +6,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from .estimate import BoundTerms
-from .finish import finish
+from .finish import _central_points, finish
 from .loop import Pass, run_queue
+from .quantities import CompactLagrangian, MASS, mechanics, OK, QDDOT
+from .units import lane_scales_from, release_point
 
 
 _NO_LIMIT = 1e30
@@ -47,9 +49,25 @@ def run_pass(L, cfg: Pass, lanes: Lanes, consts, t_max, energy_tol) -> PassResul
     t_lim = jnp.asarray(_NO_LIMIT if t_max is None else t_max, q0.dtype)
     n_live = jnp.sum(lanes.live.astype(jnp.int32))
     per_lane = (q0, lanes.target, lanes.kind, lanes.rtol, lanes.atol)
-    out, executed, rel = run_queue(L, cfg, *per_lane, t_lim, consts, n_live)
+    legs = None
+    if isinstance(L, CompactLagrangian):
+        # The point tape at the release points and at the legs' ends from one
+        # evaluation site (each an inlined copy of the tape's program).
+        def run(at):
+            at = at[:, 0]
+            rel = lane_scales_from(q0, at[QDDOT], at[MASS], at[OK] != 0)
+            out, executed, _ = run_queue(
+                L, cfg, *per_lane, t_lim, consts, n_live, rel=rel
+            )
+            return rel, (out.s, out.x, out.v), (out, executed)
+
+        rel, _, (out, executed), legs = mechanics(L, consts).release_and_leg_ends(
+            release_point(q0), run, _central_points
+        )
+    else:
+        out, executed, rel = run_queue(L, cfg, *per_lane, t_lim, consts, n_live)
     ends, terms = finish(
-        L, consts, q0, lanes.target, lanes.kind, lanes.rtol, out, rel, energy_tol
+        L, consts, q0, lanes.target, lanes.kind, lanes.rtol, out, rel, energy_tol, legs
     )
     e = ends
     return PassResult(

@@ -73,9 +73,12 @@ def _queue(cfg, controller, rel, q0s, targets, kinds, rtols, atols, t_max, n_liv
     return Queue.build(columns, n_live, cfg.screen)
 
 
-def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_live):
+def run_queue(
+    L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_live, rel=None
+):
     """The first `n_live` amplitudes of `q0s` (shape (n,)) through `cfg.width`
-    refilling lanes (the rest are left unsolved).
+    refilling lanes (the rest are left unsolved); `rel`: their `Release`, where the
+    caller has it.
 
     Returns `(LoopOutput, executed lane-steps, Release)`: per amplitude the raw
     outcome, event time and state in lane units, steps (and with `cfg.screen` the
@@ -89,7 +92,7 @@ def run_queue(L, cfg: Pass, q0s, targets, kinds, rtols, atols, t_max, consts, n_
     scalar_accel, accel_lanes = _accelerations(L, consts)
     # Each amplitude's release quantities, once for the whole queue (in the refill
     # they would be computed again for every lane).
-    rel = lane_scales(L, q0s, consts)
+    rel = lane_scales(L, q0s, consts) if rel is None else rel
     per_amplitude = (q0s, targets, kinds, rtols, atols, t_max)
     queue = _queue(cfg, controller, rel, *per_amplitude, n_live)
 

@@ -271,43 +271,82 @@ class CompactMechanics(eqx.Module):
         its units at the points `central_points(s, x, v, a)` (a: the acceleration at
         the end) where some lane's jerk is not finite (the central difference's),
         from one evaluation site: a loop of one iteration, or two."""
-        zero = jnp.zeros_like(s)
-        tau, Qs = r.tau[None], r.Qs[None]
-        at = lambda s, x, v: (tau * s, r.q0[None] + Qs * x, Qs / tau * v)
-        # (At rest at the release point, and the end, as `leg_end`.)
-        first = (
-            jnp.stack([zero, r.tau * s]),
-            jnp.stack([r.q0, r.q0 + r.Qs * x]),
-            jnp.stack([zero, r.Qs / r.tau * v]),
-        )
+        return self._ends(None, r, (s, x, v), central_points)[3]
 
-        def end_of(out):
+    def release_and_leg_ends(self, q0, run, central_points):
+        """`leg_ends` of a pass, and the evaluation at rest at each release point
+        `q0` before it, from one evaluation site: `run(out)`, given the point tape's
+        outputs there (`(8, 2, lanes)`, both columns the same), runs the pass's
+        loop and returns `(Release, (s, x, v) at the legs' ends, what else it
+        gives)`; returns those three and `leg_ends`' outputs. A loop of two
+        iterations, or three."""
+        zero = jnp.zeros_like(q0)
+        points = (jnp.stack([zero, zero]), jnp.stack([q0, q0]), jnp.stack([zero, zero]))
+        blank = jnp.zeros((len(POINT), 2) + q0.shape, q0.dtype)
+        shapes = jax.eval_shape(run, blank)
+        r, ends, extra = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+        return self._ends((run, points), r, ends, central_points, extra)
+
+    def _ends(self, first, r, ends, central_points, extra=None):
+        """The loop of `leg_ends` (with `first = (run, points)`: of
+        `release_and_leg_ends`, from its iteration 0 at `points`). Returns `(r,
+        ends, extra, leg_ends' outputs)`."""
+
+        def points_of(r, s, x, v):
+            # (At rest at the release point, and the end, as `leg_end`.)
+            zero = jnp.zeros_like(s)
+            return (
+                jnp.stack([zero, r.tau * s]),
+                jnp.stack([r.q0, r.q0 + r.Qs * x]),
+                jnp.stack([zero, r.Qs / r.tau * v]),
+            )
+
+        def end_of(r, out):
             end = out[:, 1]
             return end[QDDOT] * r.tau**2 / r.Qs, end[JERK] * r.tau**3 / r.Qs
 
-        def body(c):
-            i, points, outs, _, _ = c
-            out = self._points(*points)
-            outs = jnp.where(i == 0, out, outs)
-            a, jerk = end_of(outs)
-            central = central_points(s, x, v, a)
-            points = at(*(jnp.stack(p) for p in zip(*central)))
-            return i + 1, points, outs, out, jnp.any(~jnp.isfinite(jerk))
+        def at_ends(i, out, r, ends, extra, outs):
+            outs = jnp.where(i == 1, out, outs)
+            a, jerk = end_of(r, outs)
+            central = central_points(*ends, a)
+            tau, Qs = r.tau[None], r.Qs[None]
+            s, x, v = (jnp.stack(p) for p in zip(*central))
+            points = (tau * s, r.q0[None] + Qs * x, Qs / tau * v)
+            return points, r, ends, extra, outs, jnp.any(~jnp.isfinite(jerk))
 
+        def at_start(i, out, r, ends, extra, outs):
+            r, ends, extra = first[0](out)
+            return points_of(r, *ends), r, ends, extra, outs, jnp.zeros((), bool)
+
+        def body(c):
+            i, points, r, ends, extra, outs, _, _ = c
+            out = self._points(*points)
+            args = (i, out, r, ends, extra, outs)
+            if first is None:
+                new = at_ends(*args)
+            else:
+                new = jax.lax.cond(i == 0, at_start, at_ends, *args)
+            points, r, ends, extra, outs, bad = new
+            return i + 1, points, r, ends, extra, outs, out, bad
+
+        s = ends[0]
         blank = jnp.zeros((len(POINT), 2) + s.shape, s.dtype)
-        init = (jnp.zeros((), jnp.int32), first, blank, blank, jnp.zeros((), bool))
-        run = lambda c: (c[0] == 0) | ((c[0] == 1) & c[4])
-        _, _, outs, last, _ = jax.lax.while_loop(run, body, init)
+        start, points = (1, points_of(r, *ends)) if first is None else (0, first[1])
+        init = (jnp.asarray(start, jnp.int32), points, r, ends, extra, blank, blank)
+        init += (jnp.zeros((), bool),)
+        run = lambda c: (c[0] <= 1) | ((c[0] == 2) & c[7])
+        _, _, r, ends, extra, outs, last, _ = jax.lax.while_loop(run, body, init)
         start, end = outs[:, 0], outs[:, 1]
         accel = (end[QDDOT][:, None], (end[MASS][:, None, None], end[OK] != 0))
-        a, jerk = end_of(outs)
+        a, jerk = end_of(r, outs)
         legs = (
             (start[ENERGY], start[SCALE]),
             (accel, (end[ENERGY], end[SCALE])),
             a,
             jerk,
         )
-        return legs, list(last[QDDOT] * tau**2 / Qs)
+        accels = list(last[QDDOT] * r.tau[None] ** 2 / r.Qs[None])
+        return r, ends, extra, (legs, accels)
 
     def end_accels(self, r, points):
         s, x, v = (jnp.stack(p) for p in zip(*points))

@@ -32,14 +32,26 @@ class Release(eqx.Module):
     sigma: Float[Array, ""]
 
 
+def release_point(q0):
+    """Where a lane's release quantities are evaluated: `q0`, or 1 where it is not
+    finite (its status says so)."""
+    return jnp.where(jnp.isfinite(q0), q0, 1.0)
+
+
 def _release(mech, q0) -> Release:
     """`Release` of one lane (a scalar `q0`; `mech`: `mechanics(L, consts)`)."""
     zero = jnp.zeros((), q0.dtype)
-    finite = jnp.isfinite(q0)
-    q0 = jnp.where(finite, q0, 1.0)
+    at = release_point(q0)
     # (Unfused here: `lane_scales` fuses this function's outputs as a whole.)
-    a0, (M0, ok0) = mech.accelerations(q0[None], zero[None], zero, fuse=False)
-    a0, M0 = a0[0], M0[0, 0]
+    a0, (M0, ok0) = mech.accelerations(at[None], zero[None], zero, fuse=False)
+    return _release_from(q0, a0[0], M0[0, 0], ok0)
+
+
+def _release_from(q0, a0, M0, ok0) -> Release:
+    """`Release` of one lane from the acceleration, mass and its verdict at its
+    `release_point`."""
+    finite = jnp.isfinite(q0)
+    q0 = release_point(q0)
     start_ok = ok0 & jnp.isfinite(a0)
     moving = a0 != 0
     valid = finite & start_ok & moving
@@ -57,6 +69,12 @@ def lane_scales(L, q0, consts) -> Release:
     # would copy the acceleration at q0 (a libm sine per lane for the pendulum) into
     # each of them.
     return fused(jax.vmap(release)(q0))[0]
+
+
+def lane_scales_from(q0, a0, M0, ok0) -> Release:
+    """`lane_scales` from each lane's acceleration, mass and verdict at its
+    `release_point` (arrays over lanes)."""
+    return fused(jax.vmap(_release_from)(q0, a0, M0, ok0))[0]
 
 
 def scaled_acceleration(L, consts, fuse=None):

@@ -999,7 +999,36 @@ def _sincos(op, prm, a, b, c, d0, d1, trig):
     return jnp.where(is_sin, s, co), one, jnp.where(is_sin, one, -one)
 
 
-_FAMILY_FNS = (_affine, _switched(_RARE_FNS), _switched(_LOGIC_FNS), _sincos,
+def _chained(fns):
+    """A family whose blocks hold one opcode each, for values only: every opcode's
+    value over the block and a select by the block's opcode (one loop; a switch
+    would be a kernel per opcode, each a part of the executable to load). `rem`,
+    a libm call per entry, behind a `cond`."""
+    names = [name for name in fns if name not in ("lincomb", "rem")]
+
+    def run(op, prm, a, b, c, trig):
+        op = op[0, 0]
+        value = a
+        for name in names:
+            value = jnp.where(op == OPCODE[name], fns[name](a, b, c, a, a)[0], value)
+        if "rem" in fns:
+            value = lax.cond(op == OPCODE["rem"], lambda: lax.rem(a, b), lambda: value)
+        return value
+
+    return run
+
+
+def _kept(values):
+    """A family function from `values`, a function of `(op, prm, a, b, c, trig)`
+    whose rows keep their per-lane coefficients (the logic family's)."""
+    return lambda op, prm, a, b, c, d0, d1, trig: (
+        values(op, prm, a, b, c, trig),
+        d0,
+        d1,
+    )
+
+
+_FAMILY_FNS = (_affine, _switched(_RARE_FNS), _kept(_chained(_LOGIC_FNS)), _sincos,
                _switched(_TRANS_FNS))  # fmt: skip
 _ONE_OPCODE = (RARE, LOGIC, TRANS)  # (families whose blocks hold one opcode)
 
@@ -1118,6 +1147,33 @@ def _tree_sum(xs):
     return xs[0]
 
 
+def _tree_sum0(x):
+    """`_tree_sum(list(x))` of an array along its first axis (the same pairs, the
+    same rounding): its levels of an even count as one addition each, of the
+    array's even and odd rows (a smaller program than one per pair)."""
+    while x.shape[0] > 1 and x.shape[0] % 2 == 0:
+        x = x[0::2] + x[1::2]
+    return _tree_sum(list(x))
+
+
+def _window_sums(p, q, plain_rows=slice(None), weighted_rows=slice(None)):
+    r"""A window's products $P_i Q_i$ (`p`, `q`: `(span, rows, W)`) summed plain,
+    $\sum_i P_i Q_i$, over `plain_rows` and weighted, $\sum_i (i + 1) P_i Q_i$,
+    over `weighted_rows`, with `_tree_sum`'s pairs: over every row, the plain sum's
+    levels as whole arrays (`_tree_sum0`); over parts of the rows, each sum from
+    products of its own. (The weighted terms one by one: summed as one array,
+    they round differently.)"""
+    every = plain_rows == slice(None) and weighted_rows == slice(None)
+    if every:
+        pq = p * q
+        plain, wq = _tree_sum0(pq), list(pq)
+    else:
+        of = lambda rows: [p[i, rows] * q[i, rows] for i in range(p.shape[0])]
+        plain, wq = _tree_sum(of(plain_rows)), of(weighted_rows)
+    weighted = _tree_sum([float(i) * x for i, x in enumerate(wq, 1)])
+    return plain, weighted
+
+
 # History rows up to which the inner terms (and the histories' updates) run in
 # chunks of a Cauchy block's rows up to the rows in use (a small system in a large
 # size class, e.g. a pendulum in the period tier's, would sum mostly padding);
@@ -1165,35 +1221,38 @@ def _windowed_sums(K, C, chunks):
     at $K - i$, both zero where not yet computed: the window $R_{K-k+j} =
     Q_{k-j}$ lines up with $P_j$ and the terms $j \ge k$ read zeros, so that one
     branch serves every order whose terms fit its window, a multiple of `_SPAN`
-    orders (a few branches, not one per order: a smaller executable). Returns
-    `index(k)`, the branch of order $k$, and the branches, functions of `(k, Hp,
-    R, u0, u1)`."""
+    orders (a few branches, not one per order: a smaller executable). Returns a
+    function of `(k, Hp, R, u0, u1)`: a loop over the chunks, each a switch on
+    the window (a branch a kernel, no loop of its own)."""
 
     def branch(b):
         span = (b + 1) * _SPAN
 
-        def fn(k, Hp, R, u0, u1):
-            dtype = Hp.dtype
+        def fn(k, r, Hp, R, u0, u1):
             W = Hp.shape[2]
-            inv = 1.0 / k.astype(dtype)
+            inv = 1.0 / k.astype(Hp.dtype)
             zero, one = jnp.zeros((), jnp.int32), jnp.ones((), jnp.int32)
-
-            def chunk(c, out):
-                r = (c * C).astype(jnp.int32)
-                p = lax.dynamic_slice(Hp, (one, r, zero), (span, C, W))
-                q = lax.dynamic_slice(R, (K - k + 1, r, zero), (span, C, W))
-                pq = [p[i] * q[i] for i in range(span)]
-                plain = _tree_sum(pq)
-                weighted = _tree_sum([float(i) * x for i, x in enumerate(pq, 1)])
-                rows = lambda x: lax.dynamic_slice_in_dim(x, r, C)
-                value = rows(u0) * plain + rows(u1) * (weighted * inv)
-                return lax.dynamic_update_slice_in_dim(out, value, r, 0)
-
-            return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
+            p = lax.dynamic_slice(Hp, (one, r, zero), (span, C, W))
+            q = lax.dynamic_slice(R, (K - k + 1, r, zero), (span, C, W))
+            plain, weighted = _window_sums(p, q)
+            rows = lambda x: lax.dynamic_slice_in_dim(x, r, C)
+            return rows(u0) * plain + rows(u1) * (weighted * inv)
 
         return fn
 
-    return _window_index, [branch(b) for b in range(_windows(K))]
+    branches = [branch(b) for b in range(_windows(K))]
+
+    def sums(k, Hp, R, u0, u1):
+        index = _window_index(k)
+
+        def chunk(c, out):
+            r = (c * C).astype(jnp.int32)
+            value = lax.switch(index, branches, k, r, Hp, R, u0, u1)
+            return lax.dynamic_update_slice_in_dim(out, value, r, 0)
+
+        return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
+
+    return sums
 
 
 def _row_form(tape, D, P0, Q0):
@@ -1303,8 +1362,8 @@ def compact_coefficients(
         # Q's history reversed (`_windowed_sums`).
         Hp = jnp.zeros((K + _SPAN, H, W), dtype).at[0].set(P0)
         Hq = jnp.zeros((2 * K + _SPAN, H, W), dtype).at[K].set(Q0)
-        index, windows = _windowed_sums(K, C, chunks)
-        inner_of = lambda k, Hp, Hq: lax.switch(index(k), windows, k, Hp, Hq, u0, u1)
+        windowed = _windowed_sums(K, C, chunks)
+        inner_of = lambda k, Hp, Hq: windowed(k, Hp, Hq, u0, u1)
         at_q = lambda k: K - k
 
     def store(k, Y, Hp, Hq):
@@ -1440,12 +1499,11 @@ def _static_sums(K, u0, u1, p, w):
         span = (b + 1) * _SPAN
 
         def fn(k, Hp, R):
-            rows, W = Hp.shape[1], Hp.shape[2]
             inv = 1.0 / k.astype(Hp.dtype)
             q = lax.dynamic_slice_in_dim(R, K - k + 1, span, 0)
-            pq = lambda lo, hi: [Hp[1 + i, lo:hi] * q[i, lo:hi] for i in range(span)]
-            plain = _tree_sum(pq(0, p)) if p else jnp.zeros((0, W), Hp.dtype)
-            weighted = _tree_sum([float(i) * x for i, x in enumerate(pq(w, rows), 1)])
+            plain, weighted = _window_sums(
+                Hp[1 : 1 + span], q, slice(0, p), slice(w, None)
+            )
             both = u0[w:p] * plain[w:] + u1[w:p] * (weighted[: p - w] * inv)
             return jnp.concatenate(
                 [u0[:w] * plain[:w], both, u1[p:] * (weighted[p - w :] * inv)]
@@ -1539,25 +1597,6 @@ def _inputs0(tape, t, ys, params):
     first = tape.inputs[0]  # (the inputs, then the parameters: consecutive slots)
     Y = lax.dynamic_update_slice(Y, rows, (first, jnp.asarray(0, jnp.int32)))
     return Y, jnp.zeros((S, 2, W), dtype), state
-
-
-def _chained(fns):
-    """A family whose blocks hold one opcode each, for values only: every opcode's
-    value over the block and a select by the block's opcode (one loop; a switch
-    would be a kernel per opcode, each a part of the executable to load). `rem`,
-    a libm call per entry, behind a `cond`."""
-    names = [name for name in fns if name not in ("lincomb", "rem")]
-
-    def run(op, prm, a, b, c, trig):
-        op = op[0, 0]
-        value = a
-        for name in names:
-            value = jnp.where(op == OPCODE[name], fns[name](a, b, c, a, a)[0], value)
-        if "rem" in fns:
-            value = lax.cond(op == OPCODE["rem"], lambda: lax.rem(a, b), lambda: value)
-        return value
-
-    return run
 
 
 def _first(fn):
