@@ -382,6 +382,7 @@ def test_tiers_compile_the_specialized_program_later(monkeypatch, executable_cac
     )
     monkeypatch.setattr(batch, "_SPENT", collections.Counter())
     monkeypatch.setattr(executables, "_LATER", {})
+    monkeypatch.setattr(executables, "_LOADED", {})  # (as in a new process)
     monkeypatch.setattr(executables, "_usable_cores", lambda: 2)
     monkeypatch.setenv("LAGRAX_BACKGROUND", "1")
     monkeypatch.setattr(batch, "_compile_estimate", lambda nodes, order: 1e-3)
