@@ -1,5 +1,5 @@
 """A program compiled in a process of its own, whose XLA splits no loop across
-threads (and, for the compact tiers' programs, runs each loop as one function).
+threads (and, for `simulate_batch`'s compact program, runs each loop as one function).
 
 XLA's CPU client splits each large loop of a program into parts run in parallel on
 its thread pool, sized when JAX starts from the cores the process may use.
