@@ -70,13 +70,14 @@ def one_thread_environment() -> dict:
 _WHOLE_LOOPS = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
 
 
-def whole_loop_environment(env: dict) -> dict:
+def whole_loop_environment(env: dict, loop_bytes: int) -> dict:
     """`env` (a new process's environment) with `XLA_FLAGS` asking XLA's CPU compiler
-    to compile each while loop of a program as one function, whatever its size (after
-    any flags `env` holds). Where a later XLA drops the option, its programs compile
-    as in any other process: only slower, as before."""
+    to compile each while loop of a program whose iteration reads and writes fewer
+    than `loop_bytes` bytes as one function (after any flags `env` holds). Where a
+    later XLA drops the option, its programs compile as in any other process: only
+    slower, as before."""
     flags = env.get("XLA_FLAGS", "")
-    return {**env, "XLA_FLAGS": f"{flags} {_WHOLE_LOOPS}{1 << 62}".strip()}
+    return {**env, "XLA_FLAGS": f"{flags} {_WHOLE_LOOPS}{int(loop_bytes)}".strip()}
 
 
 def splits_loops() -> bool:

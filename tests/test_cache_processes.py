@@ -135,7 +135,7 @@ def fun(x, y):
 
 options = {"xla_cpu_use_fusion_emitters": False}
 x, y = jnp.linspace(0.0, 1.0, 500_000), jnp.linspace(1.0, 0.0, 500_000)
-f = executables.program(fun, options, whole_loops=True)
+f = executables.program(fun, options, loop_bytes=1 << 62)
 out = executables.call(f, "apart", jax.tree.structure(x), x, y)
 here = jax.jit(fun, compiler_options=options).lower(x, y).compile()
 ((compiled, _),) = executables._LOADED.values()

@@ -284,7 +284,7 @@ def test_whole_loop_environment_compiles_a_loop_as_one_function():
     for name in ("whole", "plain"):
         env = {**os.environ, "XLA_FLAGS": "--xla_cpu_enable_fast_math=false"}
         if name == "whole":
-            env = _compat.whole_loop_environment(env)
+            env = _compat.whole_loop_environment(env, 1 << 62)
             assert env["XLA_FLAGS"].startswith("--xla_cpu_enable_fast_math=false ")
         proc = subprocess.run(
             [sys.executable, "-c", _WHOLE], env=env, capture_output=True, text=True

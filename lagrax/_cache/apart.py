@@ -1,5 +1,5 @@
 """A program compiled in a process of its own, whose XLA splits no loop across
-threads (and, for `simulate_batch`'s compact program, runs each loop as one function).
+threads (and, for the compact tiers' programs, runs each loop as one function).
 
 XLA's CPU client splits each large loop of a program into parts run in parallel on
 its thread pool, sized when JAX starts from the cores the process may use.
@@ -10,11 +10,10 @@ unsplit, it runs faster and on a third of the CPU time in a process that may use
 every core). A process cannot resize its pool once JAX has started, so those
 programs (`executables.program`, kept once per machine: they serve every Lagrangian
 of their class) are compiled in a new process started with a pool of one thread
-(`_compat.one_thread_environment`) and, for `simulate_batch`'s (XLA dispatches
-each op of a loop's iteration on its own unless a process-wide flag says
-otherwise), with each loop compiled as one function
-(`_compat.whole_loop_environment`: faster, on one core too; a longer compile),
-from the program exported by `jax.export`; its
+(`_compat.one_thread_environment`) and, since XLA dispatches each op of a loop's
+iteration on its own unless a process-wide flag says otherwise, with their loops
+compiled as one function each (`_compat.whole_loop_environment`: faster, on one
+core too), from the program exported by `jax.export`; its
 executable comes back serialized, is written to the disk cache and loaded here.
 Anything that fails on the way (a program `jax.export` refuses, a worker that dies)
 leaves the compile to this process, as before: only slower."""
@@ -38,17 +37,18 @@ def wanted() -> bool:
     return jax.local_device_count() == 1 and _compat.splits_loops()
 
 
-def compile_apart(fun, options, args, started=None, whole_loops=False) -> bytes | None:
+def compile_apart(fun, options, args, started=None, loop_bytes=None) -> bytes | None:
     """The serialized executable of `jax.jit(fun, compiler_options=options)(*args)`,
     compiled in a new process with one XLA thread; None where that fails (the caller
     compiles the program itself). `fun` itself may be jitted (without options).
     `started(worker)`: called with the worker's `subprocess.Popen` once it runs
-    (killing it makes this return None). `whole_loops`: each while loop compiled as
-    one function (`_compat.whole_loop_environment`: for programs of many short loops,
-    not for unrolled ones)."""
+    (killing it makes this return None). `loop_bytes`: each while loop whose
+    iteration reads and writes fewer bytes compiled as one function
+    (`_compat.whole_loop_environment`: for programs of many short loops, not for
+    unrolled ones)."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", **_compat.one_thread_environment())
-    if whole_loops:
-        env = _compat.whole_loop_environment(env)
+    if loop_bytes is not None:
+        env = _compat.whole_loop_environment(env, loop_bytes)
     env["JAX_ENABLE_X64"] = "1" if jax.config.jax_enable_x64 else "0"
     env.pop("JAX_COMPILATION_CACHE_DIR", None)  # (its executables lack object code)
     try:

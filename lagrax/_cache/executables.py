@@ -173,19 +173,20 @@ def _key(static, args) -> str:
 _PLAIN: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def program(fun, options=None, whole_loops=False):
+def program(fun, options=None, loop_bytes=None):
     """`jax.jit(fun, compiler_options=options)`, for `call`: where XLA would split
-    its loops across threads in this process, or with `whole_loops`, `call`
-    compiles it in a process of its own that does not (`lagrax._cache.apart`), from
-    `fun` itself (a jitted function with compile options cannot be called inside
-    another); `whole_loops`: there each loop compiled as one function, its ops not
-    dispatched one by one (a longer compile). Worth a second more of compile for a
-    program of many short loops run often and compiled once per machine (the
-    compact tiers': on an idle second core its split loops gain little, on a busy
-    one they wait), not for `cached_call`'s programs, compiled per Lagrangian."""
+    its loops across threads in this process, or with `loop_bytes`, `call` compiles
+    it in a process of its own that does not (`lagrax._cache.apart`), from `fun`
+    itself (a jitted function with compile options cannot be called inside
+    another); `loop_bytes`: there each while loop whose iteration reads and writes
+    fewer bytes compiled as one function, its ops not dispatched one by one. Worth
+    a second more of compile for a program of many short loops run often and
+    compiled once per machine (the compact tiers': on an idle second core its split
+    loops gain little, on a busy one they wait), not for `cached_call`'s programs,
+    compiled per Lagrangian."""
     jitted = jax.jit(fun, compiler_options=options)
     # (`jax.jit(fun)`, called inside the exported program, finds `fun`'s trace.)
-    _PLAIN[jitted] = (jax.jit(fun), dict(options or {}), whole_loops)
+    _PLAIN[jitted] = (jax.jit(fun), dict(options or {}), loop_bytes)
     return jitted
 
 
@@ -217,10 +218,12 @@ def _compile_apart(key, jitted, args, in_tree, out_tree):
     compiles it (`jitted` not made by `program`, nothing to gain apart, JAX's
     persistent cache is in use, or the worker failed)."""
     plain = _PLAIN.get(jitted)
-    if plain is None or _jax_cache_in_use() or not (plain[2] or apart.wanted()):
+    if plain is None or _jax_cache_in_use():
         return None
-    fun, options, whole_loops = plain
-    payload = apart.compile_apart(fun, options, args, whole_loops=whole_loops)
+    fun, options, loop_bytes = plain
+    if loop_bytes is None and not apart.wanted():
+        return None
+    payload = apart.compile_apart(fun, options, args, loop_bytes=loop_bytes)
     if payload is None:
         return None
     try:

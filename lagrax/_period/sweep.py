@@ -462,6 +462,9 @@ _sweep_call.defjvp(_sweep_call_jvp, symbolic_zeros=True)
 
 # The structure of `_sweep_body`'s outputs, and of its forward jacobian's.
 _OUT_TREE = jax.tree.structure((Periods(*[0] * 5), 0))
+# The compact sweep's loops compiled as one function each: those whose iteration
+# reads and writes fewer bytes (`executables.program`'s `loop_bytes`).
+_INNER_LOOPS = 10_000_000
 _JACOBIAN_OUT_TREE = jax.tree.structure(((Periods(*[0] * 5), 0), 0))
 
 
@@ -476,8 +479,10 @@ def _sweep_jit(L, m, devices, elemental=False, wide=False):
     if elemental:
         # (`executables.program`: the compact tier's, which `executables.call`
         # compiles where XLA keeps its loops whole, so that a busy second core, e.g.
-        # compiling the specialized program, does not hold up its loops' parts.)
-        return executables.program(body, elemental_options())
+        # compiling the specialized program, does not hold up its loops' parts; its
+        # inner loops, the Taylor coefficients' and the steps', each one function:
+        # its outer loops too would lengthen the compile for no faster sweep.)
+        return executables.program(body, elemental_options(), loop_bytes=_INNER_LOOPS)
     return jax.jit(body, compiler_options=(vector_options() or None) if wide else None)
 
 

@@ -61,6 +61,9 @@ from .term import _LagrangeVectorField, BoundLagrangian
 # The most equations (orders x nodes of the system's program, L's constants among
 # its arguments) a step unrolls: a chain of six pendulums at order 16 (8,208).
 _UNROLL_BUDGET = 10_000
+# The compact program's loops compiled as one function each: every loop
+# (`executables.program`'s `loop_bytes`, bytes an iteration reads and writes).
+_EVERY_LOOP = 1 << 62
 
 # Per-lane outcome codes of the loop, mapped onto diffrax.RESULTS at the end.
 _RUNNING, _DONE, _MAX_STEPS, _NONFINITE = 0, 1, 2, 3
@@ -433,7 +436,8 @@ def _compact_program(cfg, shape, cpu, devices):
     return executables.program(
         lambda *args: _assemble(*shape, *_looped(devices)(cfg, *args)),
         elemental_options() if cpu else {},
-        whole_loops=cpu,
+        # (Every loop one function: its loops over blocks and orders, and the step's.)
+        loop_bytes=_EVERY_LOOP if cpu else None,
     )
 
 
