@@ -128,6 +128,17 @@ def test_the_compact_tapes_give_what_autodiff_gives():
     assert len(sizes) == 1
 
 
+def _power_well_tapes(dtype):
+    """The compact tapes of V = (1 + q)^1.5 (V'' infinite at q = -1) and its
+    parameters padded to the tapes' count: `(L_c, consts, L_t, tapes, params)`."""
+    L = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - (1.0 + q[0]) ** 1.5
+    L_c, consts = canonical_lagrangian(L, dtype)
+    L_t, tapes = tier.tapes_of(L_c, consts, dtype)
+    params = [jnp.asarray(c, dtype).reshape(()) for c in consts]
+    params += [jnp.zeros((), dtype)] * (L_t.n_params - len(params))
+    return L_c, consts, L_t, tapes, params
+
+
 def test_the_compact_leg_ends_give_what_autodiff_gives():
     # `leg_ends` evaluates the point tape at one site for the ends of the legs and,
     # where a jerk is not finite (V = (1 + q)^1.5 has V'' infinite at -1: the middle
@@ -135,11 +146,7 @@ def test_the_compact_leg_ends_give_what_autodiff_gives():
     from lagrax._period.finish import _central_points
 
     dtype = jnp.float64
-    L = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - (1.0 + q[0]) ** 1.5
-    L_c, consts = canonical_lagrangian(L, dtype)
-    L_t, tapes = tier.tapes_of(L_c, consts, dtype)
-    params = [jnp.asarray(c, dtype).reshape(()) for c in consts]
-    params += [jnp.zeros((), dtype)] * (L_t.n_params - len(params))
+    L_c, consts, L_t, tapes, params = _power_well_tapes(dtype)
     q0 = jnp.array([0.3, 0.5, -1.1], dtype)
     rel = Release(
         q0, q0 > -2, q0 > -2, q0 > -2, q0 > -2, jnp.ones_like(q0), -jnp.ones_like(q0),
@@ -184,11 +191,7 @@ def test_a_pass_evaluates_the_point_tape_at_one_site(monkeypatch):
     from lagrax._period.units import lane_scales, lane_scales_from, release_point
 
     dtype = jnp.float64
-    L = lambda q, qdot, t: 0.5 * qdot[0] ** 2 - (1.0 + q[0]) ** 1.5
-    L_c, consts = canonical_lagrangian(L, dtype)
-    L_t, tapes = tier.tapes_of(L_c, consts, dtype)
-    params = [jnp.asarray(c, dtype).reshape(()) for c in consts]
-    params += [jnp.zeros((), dtype)] * (L_t.n_params - len(params))
+    L_c, consts, L_t, tapes, params = _power_well_tapes(dtype)
     q0 = jnp.array([0.3, -0.5, jnp.nan], dtype)
     # Leg ends in lane units: the middle lane's at q = -1 (V'' infinite there).
     ends = (jnp.array([0.2, 0.7, 1.1]), jnp.array([-0.1, -1.0, 0.4]), jnp.zeros(3))
