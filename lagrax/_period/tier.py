@@ -45,7 +45,7 @@ from .._taylor import compact
 from .._taylor.compact_stepper import CompactTaylorStepper
 from .._taylor.stepper import TaylorStepper
 from .._taylor.system import _eval_entries, _SystemProgram
-from .._trajectory.batch import _compact_mode
+from .._trajectory.batch import _compact_mode, _kept
 from .quantities import AutodiffMechanics, CompactLagrangian, PeriodTapes
 
 
@@ -93,18 +93,14 @@ def tapes_of(L_c, consts, dtype):
     """`(CompactLagrangian, PeriodTapes)` of the canonical `L_c`, or None where it
     has no compact tape; built once per canonical function (its constants are the
     tapes' parameters)."""
-    key = (L_c, np.dtype(dtype).name)
-    if key in _TAPES:
-        _TAPES.move_to_end(key)
-        return _TAPES[key]
-    try:
-        found = _build(L_c, consts, dtype)
-    except (NotImplementedError, TypeError, ValueError):
-        found = None
-    _TAPES[key] = found
-    if len(_TAPES) > _MAX_TAPES:
-        _TAPES.popitem(last=False)
-    return found
+
+    def make():
+        try:
+            return _build(L_c, consts, dtype)
+        except (NotImplementedError, TypeError, ValueError):
+            return None
+
+    return _kept(_TAPES, (L_c, np.dtype(dtype).name), make, _MAX_TAPES)
 
 
 def n_params(n):

@@ -793,16 +793,17 @@ def _known(jitted, options, origin, args) -> bool:
     return executables.available(jitted, options, *args, n_static=2, origin=origin)
 
 
-def _kept(store, key, make):
-    """`make()`, kept in `store` under `key` (the least recently used dropped past
-    `_MAX_TAPES`); made afresh where `key` is None (values that do not hash)."""
+def _kept(store, key, make, most=_MAX_TAPES):
+    """`make()`, kept in `store` (an `OrderedDict`) under `key`, the least recently
+    used dropped past `most`; made afresh where `key` is None (values that do not
+    hash)."""
     if key is None:
         return make()
     if key in store:
         store.move_to_end(key)
         return store[key]
     value = store[key] = make()
-    if len(store) > _MAX_TAPES:
+    if len(store) > most:
         store.popitem(last=False)
     return value
 
