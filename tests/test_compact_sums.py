@@ -31,3 +31,46 @@ def test_window_sums_over_parts_of_the_rows_are_those_of_the_rows():
     # The weighted sum weighs the i-th product by i + 1.
     terms = [(i + 1) * p[i] * q[i] for i in range(8)]
     np.testing.assert_allclose(np.asarray(weighted), sum(terms), rtol=1e-12)
+
+
+def test_operand_sums_are_the_cauchy_sums_of_each_row():
+    # Rows sharing operands read them from one history per distinct operand: the
+    # sums are each row's own, sum_{0<j<k} (u0 + u1 j / k) P_j Q_{k-j}, for the
+    # rows of the chunks in use (the others zero).
+    K, H, U, W, C = 7, 12, 5, 3, 4
+    rng = np.random.default_rng(1)
+    Hu = rng.standard_normal((K, U, W))
+    hidx = rng.integers(0, U, (2, H)).astype(np.int32)
+    u0, u1 = rng.standard_normal((2, H, W))
+    sums = compact._operand_sums(K, C, 2)  # (rows 0..7 in use)
+    for k in range(1, K):
+        got = np.asarray(jax.jit(sums)(k, Hu, hidx, u0, u1))
+        P, Q = Hu[:, hidx[0]], Hu[:, hidx[1]]
+        want = sum(((u0 + u1 * j / k) * P[j] * Q[k - j] for j in range(1, k)), 0 * u0)
+        np.testing.assert_allclose(got[:8], want[:8], rtol=1e-12, atol=1e-14)
+        np.testing.assert_array_equal(got[8:], 0.0)
+
+
+def test_a_tape_keeps_each_operand_once():
+    import jax.numpy as jnp
+
+    import lagrax
+    from lagrax._jaxpr.canonical import canonical_lagrangian
+    from lagrax._trajectory.batch import _system
+
+    def positions(q, t):
+        return jnp.stack([jnp.cumsum(jnp.sin(q)), -jnp.cumsum(jnp.cos(q))], axis=1)
+
+    L = lagrax.particle_lagrangian(
+        jnp.ones(3), positions, lambda r, t: 9.81 * jnp.sum(r[:, 1])
+    )
+    L_c, consts = canonical_lagrangian(L, jnp.float64, 3)
+    prog = _system(L_c, consts, None, jnp.zeros(3), jnp.zeros(3)).prog
+    tape = compact.build(prog, prog.inputs, prog.params, prog.outs, jnp.float64)
+    rows = int(tape.blocks[2])
+    hist, hnode, hidx = (np.asarray(x) for x in (tape.hist, tape.hnode, tape.hidx))
+    # Every row's operands through the indices, each distinct operand once.
+    np.testing.assert_array_equal(hnode[hidx[:, :rows]], hist[:, :rows])
+    kept = np.unique(np.concatenate([[0], hist[:, :rows].ravel()]))  # (0: padding)
+    np.testing.assert_array_equal(hnode[: kept.size], kept)
+    assert kept.size < 2 * rows  # (shared operands: fewer histories than rows)

@@ -25,9 +25,10 @@ recurrences run in ONE program per *size class*, the equations being data (a
     its outputs one contiguous slice of the values of order $k$. A Cauchy sum's
     terms $0 < j < k$ read only orders below $k$: they are summed before the
     levels, once per order for every Cauchy node at once, from *histories* (the
-    operands' coefficients, stored order by order), one function per order (a
-    switch) so that each sums exactly its terms; a block adds the terms $j = 0,
-    k$ with its operands of order $k$.
+    coefficients of each distinct operand, stored once, order by order, and read
+    through each node's indices), one function per order (a switch) so that each
+    sums exactly its terms; a block adds the terms $j = 0, k$ with its operands of
+    order $k$.
 - Order 0 runs level by level too, each level's nodes in blocks of one *family*
     (affine, other arithmetic, logic, sine and cosine, other transcendental, a
     mass-matrix factorization), evaluating the primitives and setting the
@@ -202,8 +203,10 @@ class CompactTape(eqx.Module):
     `sout`, `dout`; `sst` the constant coefficients of linear nodes; `hist` the
     slots whose histories the Cauchy sums read (each row's $P$ and $Q$), `hcst`
     each row's constants $(c_0, c_1)$ and whether it weighs its plain and its
-    weighted sum, `hslot` its node's slot. `blocks`: the blocks in use at order 0
-    and above.
+    weighted sum, `hslot` its node's slot; `hnode` the distinct slots of `hist`
+    (the operands whose histories a large tape keeps once each, `_operand_sums`)
+    and `hidx` each row's $P$ and $Q$ as indices into `hnode`. `blocks`: the
+    blocks in use at order 0 and above.
     """
 
     values: jax.Array
@@ -232,6 +235,8 @@ class CompactTape(eqx.Module):
     blocks: jax.Array
     hcst: jax.Array
     hslot: jax.Array
+    hnode: jax.Array
+    hidx: jax.Array
     families: tuple = eqx.field(static=True)
     caps0: tuple = eqx.field(static=True)  # (order-0 blocks per family)
 
@@ -243,7 +248,7 @@ class CompactTape(eqx.Module):
             (name, getattr(self, name).shape)
             for name in (
                 "values", "inputs", "params", "seq0", "op0", "fac_m", "cgat",
-                "sgat", "dgat", "hist", "seq1",
+                "sgat", "dgat", "hist", "hnode", "seq1",
             )
         )  # fmt: skip
         return shapes + (("families", self.families), ("caps0", self.caps0))
@@ -257,6 +262,7 @@ class CompactTape(eqx.Module):
             n=math.isqrt(self.fac_m.shape[1]) if self.fac_m.shape[1] > 1 else 0,
             F=self.fac_m.shape[0] if self.fac_m.shape[1] > 1 else 0,
             H=self.hist.shape[1],
+            U=self.hnode.shape[0],
             p=self.params.shape[0],
             NB=self.seq1.shape[0],
             B1cau=self.cgat.shape[0],
@@ -822,6 +828,11 @@ def build(
             dgat[bi, :, j] = [s1(i) for i in _form_operands(nd)]
     seq1 = np.zeros((_bucket(len(seq), minimum.get("NB", 4)), 3), np.int32)
     seq1[: len(seq)] = seq
+    # The distinct operands of the rows in use (slot 0 first: the padding rows').
+    distinct = np.unique(np.concatenate([[0], hist[:, :rows].reshape(-1)]))
+    hnode = np.zeros((_bucket3(distinct.size, minimum.get("U", 16)),), np.int32)
+    hnode[: distinct.size] = distinct
+    hidx = np.searchsorted(distinct, hist).astype(np.int32)
     P_arr = np.full((P,), dummy, np.int32)
     P_arr[: len(b.params)] = [fixed[b.id(i)] for i in b.params]
     # (NumPy arrays: concrete even where the tape is built inside a trace.)
@@ -853,6 +864,8 @@ def build(
         blocks=as_i([len(levels0), len(seq), rows]),
         hcst=np.asarray(hcst),
         hslot=as_i(hslot),
+        hnode=as_i(hnode),
+        hidx=as_i(hidx),
         families=fams,
         caps0=tuple(B0[f] for f in fams),
     )
@@ -1174,34 +1187,44 @@ def _window_sums(p, q, plain_rows=slice(None), weighted_rows=slice(None)):
     return plain, weighted
 
 
-# History rows up to which the inner terms (and the histories' updates) run in
-# chunks of a Cauchy block's rows up to the rows in use (a small system in a large
-# size class, e.g. a pendulum in the period tier's, would sum mostly padding);
-# beyond, over every row at once.
-_ALL_ROWS = 64
-# Orders per window step of `_windowed_sums`.
+# Orders per window step of `_static_sums`.
 _SPAN = 4
 
 
-def _inner_sums(K):
-    r"""Per order $k = 1..K-1$, a function of the histories (`Hp`, `Hq`: `(K, H,
-    W)`, order first) and the rows' weights `(u0, u1)` giving every row's Cauchy
-    terms strictly inside the sum, $\sum_{j=1}^{k-1} (u_0 + u_1 j / k)\, P_j
-    Q_{k-j}$, over every row: one branch per order (a switch), so that each sums
-    exactly its terms."""
+def _operand_sums(K, C, chunks):
+    r"""Every row's Cauchy terms strictly inside the sum, $\sum_{j=1}^{k-1} (u_0 +
+    u_1 j / k)\, P_j Q_{k-j}$, for the rows in use (`chunks` chunks of `C` rows),
+    from one history per distinct operand (`Hu`: `(K, U, W)`, order first) read
+    through the rows' indices (`hidx`: `(2, H)`): rows that share an operand read
+    it from one place, which the cache keeps (half the bytes of a history per
+    row, whose reads bound these sums). Returns a function of `(k, Hu, hidx, u0,
+    u1)`: a loop over the chunks, each a switch on the order, so that each branch
+    sums exactly its terms."""
 
     def branch(k):
-        def fn(Hp, Hq, u0, u1):
+        def fn(r, Hu, hidx, u0, u1):
+            a, b = (lax.dynamic_slice_in_dim(u, r, C) for u in (u0, u1))
             if k == 1:
-                return jnp.zeros_like(u0)
-            pq = [Hp[j] * Hq[k - j] for j in range(1, k)]
+                return jnp.zeros_like(a)
+            ip, iq = lax.dynamic_slice_in_dim(hidx, r, C, 1)
+            pq = [_at(Hu[j], ip) * _at(Hu[k - j], iq) for j in range(1, k)]
             plain = _tree_sum(pq)
             weighted = _tree_sum([float(j) * x for j, x in enumerate(pq, 1)])
-            return u0 * plain + u1 * (weighted * (1.0 / k))
+            return a * plain + b * (weighted * (1.0 / k))
 
         return fn
 
-    return [branch(k) for k in range(1, K)]
+    branches = [branch(k) for k in range(1, K)]
+
+    def sums(k, Hu, hidx, u0, u1):
+        def chunk(c, out):
+            r = (c * C).astype(jnp.int32)
+            value = lax.switch(k - 1, branches, r, Hu, hidx, u0, u1)
+            return lax.dynamic_update_slice_in_dim(out, value, r, 0)
+
+        return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
+
+    return sums
 
 
 def _windows(K):
@@ -1211,48 +1234,8 @@ def _windows(K):
 
 
 def _window_index(k):
-    """The window (a branch of `_windowed_sums`) whose span fits order $k$'s terms."""
+    """The window (a branch of `_static_sums`) whose span fits order $k$'s terms."""
     return (jnp.maximum(k, 2) - 2) // _SPAN
-
-
-def _windowed_sums(K, C, chunks):
-    r"""`_inner_sums`' terms for the rows in use (`chunks` chunks of `C` rows),
-    from `Hp` (`(K + _SPAN, H, W)`) and `R` (`(2K + _SPAN, H, W)`) holding $Q_i$
-    at $K - i$, both zero where not yet computed: the window $R_{K-k+j} =
-    Q_{k-j}$ lines up with $P_j$ and the terms $j \ge k$ read zeros, so that one
-    branch serves every order whose terms fit its window, a multiple of `_SPAN`
-    orders (a few branches, not one per order: a smaller executable). Returns a
-    function of `(k, Hp, R, u0, u1)`: a loop over the chunks, each a switch on
-    the window (a branch a kernel, no loop of its own)."""
-
-    def branch(b):
-        span = (b + 1) * _SPAN
-
-        def fn(k, r, Hp, R, u0, u1):
-            W = Hp.shape[2]
-            inv = 1.0 / k.astype(Hp.dtype)
-            zero, one = jnp.zeros((), jnp.int32), jnp.ones((), jnp.int32)
-            p = lax.dynamic_slice(Hp, (one, r, zero), (span, C, W))
-            q = lax.dynamic_slice(R, (K - k + 1, r, zero), (span, C, W))
-            plain, weighted = _window_sums(p, q)
-            rows = lambda x: lax.dynamic_slice_in_dim(x, r, C)
-            return rows(u0) * plain + rows(u1) * (weighted * inv)
-
-        return fn
-
-    branches = [branch(b) for b in range(_windows(K))]
-
-    def sums(k, Hp, R, u0, u1):
-        index = _window_index(k)
-
-        def chunk(c, out):
-            r = (c * C).astype(jnp.int32)
-            value = lax.switch(index, branches, k, r, Hp, R, u0, u1)
-            return lax.dynamic_update_slice_in_dim(out, value, r, 0)
-
-        return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
-
-    return sums
 
 
 def _row_form(tape, D, P0, Q0):
@@ -1273,7 +1256,7 @@ def _order_k(tape, Y, F, inner, D, blocks=None):
     r"""Every series node's coefficient $k$ (series space), block by block in the
     level order, from the values of order $k$ that earlier levels computed (`Y`):
     a Cauchy node's as $\alpha X_k + \beta P_k + \gamma Q_k$ plus its inner terms
-    (`F`, `inner`: `_row_form`, `_inner_sums` per history row), a linear node's
+    (`F`, `inner`: `_row_form`, `_operand_sums` per history row), a linear node's
     from its operands. Each block's form is a switch whose branch returns the
     block's values (small operands, so that `Y` is updated in place outside it)."""
     Gc, Gl = tape.cgat.shape[2], tape.sgat.shape[2]
@@ -1343,66 +1326,34 @@ def compact_coefficients(
     Y, D = _order0(tape, Y, D, trig, seg)
     Y, D = _at(Y, tape.perm), _at(D, tape.perm)
     # --- orders 1..K-1 of the nodes, 2..K of the state
-    H = tape.hist.shape[1]
     P0, Q0 = _at(Y, tape.hist[0]), _at(Y, tape.hist[1])
     F, u0, u1 = _row_form(tape, D, P0, Q0)
-    # Histories, order first, zero where not yet computed.
-    Hp = jnp.zeros((K, H, W), dtype).at[0].set(P0)
-    Hq = jnp.zeros((K, H, W), dtype).at[0].set(Q0)
     Z = jnp.zeros((m - 1, K + 1, W), dtype)
     Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(_at(Y, tape.outs))
     rows = _bound(tape.blocks[2]) if rows is None else rows
     C = tape.cgat.shape[2]
-    chunks = (rows + C - 1) // C
-    if H > _ALL_ROWS:
-        sums = _inner_sums(K)
-        inner_of = lambda k, Hp, Hq: lax.switch(k - 1, sums, Hp, Hq, u0, u1)
-        at_q = lambda k: k
-    else:
-        # Q's history reversed (`_windowed_sums`).
-        Hp = jnp.zeros((K + _SPAN, H, W), dtype).at[0].set(P0)
-        Hq = jnp.zeros((2 * K + _SPAN, H, W), dtype).at[K].set(Q0)
-        windowed = _windowed_sums(K, C, chunks)
-        inner_of = lambda k, Hp, Hq: windowed(k, Hp, Hq, u0, u1)
-        at_q = lambda k: K - k
-
-    def store(k, Y, Hp, Hq):
-        """The histories' order `k` from `Y`: every row, or the rows in use."""
-        zero = i32(0)
-        if H > _ALL_ROWS:
-            p, q = _at(Y, tape.hist[0])[None], _at(Y, tape.hist[1])[None]
-            Hp = lax.dynamic_update_slice(Hp, p, (k, zero, zero))
-            Hq = lax.dynamic_update_slice(Hq, q, (k, zero, zero))
-            return Hp, Hq
-
-        def put(c, carry):
-            Hp, Hq = carry
-            r = (c * C).astype(jnp.int32)
-            at = lax.dynamic_slice_in_dim(tape.hist, r, C, 1)
-            Hp = lax.dynamic_update_slice(Hp, _at(Y, at[0])[None], (k, r, zero))
-            Hq = lax.dynamic_update_slice(Hq, _at(Y, at[1])[None], (at_q(k), r, zero))
-            return Hp, Hq
-
-        return lax.fori_loop(0, chunks, put, (Hp, Hq))
+    sums = _operand_sums(K, C, (rows + C - 1) // C)
+    # The operands' histories, order first: each order read is written before.
+    Hu = jnp.zeros((K, tape.hnode.shape[0], W), dtype).at[0].set(_at(Y, tape.hnode))
 
     def order(k, carry):
-        Y, Hp, Hq, Z = carry
+        Y, Hu, Z = carry
         k = k.astype(jnp.int32)
         t_k = jnp.where(k == 1, 1.0, 0.0).astype(dtype) * jnp.ones((1, W), dtype)
         y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
         Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, y_k]), (first, i32(0)))
-        inner = inner_of(k, Hp, Hq)
+        inner = sums(k, Hu, tape.hidx, u0, u1)
         Y = _order_k(tape, Y, F, inner, D, blocks)
-        Hp, Hq = store(k, Y, Hp, Hq)
+        Hu = lax.dynamic_update_slice(Hu, _at(Y, tape.hnode)[None], (k, i32(0), i32(0)))
         f = _at(Y, tape.outs) / (k + 1).astype(dtype)
         Z = lax.dynamic_update_slice(Z, f[:, None], (i32(0), k + 1, i32(0)))
-        return Y, Hp, Hq, Z
+        return Y, Hu, Z
 
     # (Every slot a block writes is written at every order before it is read;
     # the others, constants and parameters, are zero above order 0.)
-    carry = (jnp.zeros_like(Y), Hp, Hq, Z)
+    carry = (jnp.zeros_like(Y), Hu, Z)
     if K > 1:  # (K = 1: the acceleration alone, no order to recur)
-        Z = lax.fori_loop(1, K, order, carry)[3]
+        Z = lax.fori_loop(1, K, order, carry)[2]
     return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
 
 
@@ -1491,9 +1442,14 @@ def _rows_by_sum(tape):
 
 
 def _static_sums(K, u0, u1, p, w):
-    r"""`_windowed_sums` over every row in use at once, for rows sorted by
-    `_rows_by_sum`: each sum over the rows that weigh it only. Returns `index(k)`
-    and the branches, functions of `(k, Hp, R)`."""
+    r"""Every row's Cauchy terms strictly inside the sum (`_operand_sums`) over
+    every row in use at once, for rows sorted by `_rows_by_sum`, each sum over the
+    rows that weigh it only: from `Hp` (`(K + _SPAN, rows, W)`) and `R` (`(2K +
+    _SPAN, rows, W)`) holding $Q_i$ at $K - i$, both zero where not yet computed,
+    so that the window $R_{K-k+j} = Q_{k-j}$ lines up with $P_j$ and the terms $j
+    \ge k$ read zeros: one branch serves every order whose terms fit its window,
+    a multiple of `_SPAN` orders. Returns `index(k)` and the branches, functions
+    of `(k, Hp, R)`."""
 
     def branch(b):
         span = (b + 1) * _SPAN
@@ -1556,7 +1512,7 @@ def inline_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False):
     hist = np.asarray(static.hist)[:, rows]
     A = _run_form(node, F, D)
     index, sums = _static_sums(K, u0, u1, p, w)
-    # Histories, zero where not yet computed; Q's reversed (`_windowed_sums`).
+    # Histories, zero where not yet computed; Q's reversed (`_static_sums`).
     Hp = jnp.zeros((K + _SPAN, rows.shape[0], W), dtype).at[0].set(P0)
     R = jnp.zeros((2 * K + _SPAN, rows.shape[0], W), dtype).at[K].set(Q0)
     Z = jnp.zeros((m - 1, K + 1, W), dtype)
