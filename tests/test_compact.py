@@ -208,6 +208,29 @@ def test_narrow_blocks_equal_the_unrolled_program(blocks):
     _close(_compact(system, K, *point, tape=tape), _unrolled(system, K, *point, 2))
 
 
+def test_signs_and_constant_factors_cost_no_node_above_order_0():
+    """The same anharmonic oscillator written plainly and through negations and
+    constant factors: the same coefficients, from as many nodes at orders >= 1
+    (each sign and factor folded into the coefficients of what reads it)."""
+
+    def plain(q, qd, t):
+        return 0.5 * qd[0] ** 2 - 0.5 * q[0] ** 2 - 0.25 * q[0] ** 4
+
+    def signed(q, qd, t):
+        x, y = -(2.0 * q[0]), 3.0 * q[0]
+        return 0.5 * (-qd[0]) ** 2 - x**2 / 8.0 - 0.25 * (-y / 3.0) ** 4
+
+    systems = [_system(L, 1) for L in (plain, signed)]
+    tapes = [
+        compact.build(s.prog, s.prog.inputs, s.prog.params, s.prog.outs, jnp.float64)
+        for s in systems
+    ]
+    nodes = [int(np.asarray(t.seq1)[: int(t.blocks[1]), 2].sum()) for t in tapes]
+    assert nodes[1] == nodes[0], nodes
+    point = _point(1, seed=2)
+    _close(_compact(systems[1], K, *point), _unrolled(systems[0], K, *point, 1))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("n", [2, 4, 6, 8])
 def test_chains_equal_the_unrolled_program(n):

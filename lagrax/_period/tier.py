@@ -73,7 +73,7 @@ _FAMILIES = (compact.AFFINE, compact.RARE, compact.LOGIC, compact.SINCOS)
 # nodes where a block of 8 would pad them (`benchmarks/compact_steps.py`).
 _SIZE = {
     "step": dict(
-        families=_FAMILIES, S=128, NB0=64, H=32, U=32, NB=32, B1cau=8, B1slin=8,
+        families=_FAMILIES, S=128, NB0=64, H=32, U=32, NB=32, B1cau=16, B1slin=8,
         B1dlin=16, B00=16, B01=32, B02=8, B03=2, Gc=2, Gl=2, G0=4,
     ),
     "point": dict(

@@ -293,14 +293,19 @@ def join(*sizes) -> dict:
 
 
 class _CNode:
-    __slots__ = ("op", "args", "out", "form", "lvl0", "lvl1", "coef", "affine")
+    __slots__ = (
+        "op", "args", "out", "form", "lvl0", "lvl1", "coef", "affine", "sargs",
+        "dropped",
+    )  # fmt: skip
 
     def __init__(self, op, args, out):
         self.op = op
         self.args = tuple(args)  # ids (a, b, c), None where absent
         self.out = out
-        self.coef = _OPS[op][3]
+        self.coef = _OPS[op][3]  # (at orders >= 1)
         self.affine = _AFFINE.get(op)
+        self.sargs = None  # (its operands at orders >= 1 where not `args`)
+        self.dropped = False  # (not computed at orders >= 1)
 
 
 class _Factor:
@@ -550,9 +555,60 @@ class _Builder:
 
 def _form_operands(node):
     """The form's operand ids, `(X, P, Q)` or `(X, Y)` (None: the zero slot)."""
-    where = dict(zip("abc", node.args), o=node.out)
+    where = dict(zip("abc", node.args if node.sargs is None else node.sargs))
+    where["o"] = node.out
     where["-"] = None
     return [where.get(name) for name in _OPS[node.op][2]]
+
+
+# Constant-linear opcodes of one operand, $y = c x$ at orders >= 1 (`rem` by a fixed
+# divisor: its derivative is its operand's).
+_SCALED = frozenset({"neg", "copy", "scalec", "rem"})
+# Products whose plain sum's constant a factor of an operand folds into.
+_PRODUCTS = frozenset({"mul", "zero"})
+
+
+def _fold_scaled(b):
+    r"""At orders $\ge 1$, a constant-linear node or a product reads through the
+    nodes $u = c\,x$ of one operand among its operands (`_SCALED`: a negation, a
+    constant factor, a copy): $s_0 u + s_1 v = (s_0 c) x + s_1 v$, and a product's
+    plain sum takes $c$ into its constant ($c_1 \sum P_j Q_{k-j}$ with $P = c x$ is
+    $(c_1 c) \sum x_j Q_{k-j}$). A node $u$ that nothing reads at orders $\ge 1$
+    then is not computed there: fewer nodes and fewer levels (an expression's
+    signs and constant factors cost no block). Order 0 computes every node as
+    written."""
+    scaled = {}  # u -> (x, c), x itself not of `_SCALED`
+    for nd in b.nodes:
+        if nd.out not in b.series:
+            continue
+        form = _OPS[nd.op][1]
+        args = list(nd.args)
+        coef = nd.coef
+        # (The form's terms: which argument each weighs, by `_OPS`' names.)
+        terms = [(t, "abc".index(n)) for t, n in enumerate(_OPS[nd.op][2]) if n in "ab"]
+        if form == "slin" and coef is not None:
+            for t, pos in terms:
+                if args[pos] in scaled:
+                    args[pos], c = scaled[args[pos]]
+                    coef = tuple(w * c if i == t else w for i, w in enumerate(coef))
+        elif nd.op in _PRODUCTS:
+            c1 = coef[1]
+            for _, pos in terms:
+                if args[pos] in scaled:
+                    args[pos], c = scaled[args[pos]]
+                    c1 *= c
+            coef = (coef[0], c1)
+        if tuple(args) != nd.args:
+            nd.sargs, nd.coef = tuple(args), coef
+        if nd.op in _SCALED and coef is not None and args[0] in b.series:
+            scaled[nd.out] = (args[0], coef[0])
+    # The nodes read at orders >= 1 (by a form, or as an output).
+    read = {b.id(i) for i in b.outs}
+    for nd in b.nodes:
+        if nd.out in b.series and _OPS[nd.op][1] is not None:
+            read.update(i for i in _form_operands(nd) if i is not None and i != nd.out)
+    for nd in b.nodes:
+        nd.dropped = nd.out in scaled and nd.out not in read
 
 
 def _levels(b):
@@ -571,6 +627,8 @@ def _levels(b):
         node.lvl0 = 1 + max(deps + [0])
         lvl0[node.out] = node.lvl0
         node.form = _OPS[node.op][1] if node.out in b.series else None
+        if node.dropped:
+            node.form = None
         if node.form == "slin" and node.op not in _AFFINE and node.coef is None:
             node.form = "dlin"
         if node.form is None:
@@ -613,6 +671,7 @@ def build(
     b = _Builder(prog, inputs, list(params) + extra, outs)
     for i in extra:
         b.consts.pop(i)
+    _fold_scaled(b)
     _levels(b)
     dtype = np.dtype(dtype)
     minimum = dict(size or {})
