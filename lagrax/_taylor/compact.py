@@ -1116,21 +1116,75 @@ def _family_fns(opcodes):
             _sincos, _switched(pick(_TRANS_FNS)))  # fmt: skip
 
 
+def _cholesky(A):
+    """`solve._cholesky` of `A` (`(n, n, W)`) as loops over its columns and their
+    terms: a program whose size does not grow with $n$ (written out, the
+    factorization and the inverse are most of a chain's compact program), each
+    entry by the same operations in the same order. Returns `(L, 1 / diag(L))`."""
+    n, W = A.shape[0], A.shape[2]
+    idx = jnp.arange(n)[:, None]
+    col_of = lambda X, k: lax.dynamic_index_in_dim(X, k, 1, keepdims=False)
+
+    def column(j, carry):
+        Lf, inv = carry
+        Lj = lax.dynamic_index_in_dim(Lf, j, 0, keepdims=False)  # (n, W)
+
+        def term(k, s):  # (every entry of column j less its term k)
+            return s - col_of(Lf, k) * lax.dynamic_index_in_dim(Lj, k, 0)
+
+        s = lax.fori_loop(0, j, term, col_of(A, j))
+        d = jnp.sqrt(lax.dynamic_index_in_dim(s, j, 0))  # NaN where not definite
+        r = 1.0 / d
+        c = jnp.where(idx > j, s * r, jnp.where(idx == j, d, 0.0))
+        Lf = lax.dynamic_update_slice_in_dim(Lf, c[:, None], j, 1)
+        return Lf, lax.dynamic_update_slice_in_dim(inv, r, j, 0)
+
+    zero = jnp.zeros((n, n, W), A.dtype)
+    return lax.fori_loop(0, n, column, (zero, jnp.zeros((n, W), A.dtype)))
+
+
+def _inverse(Lf, inv):
+    """$(L L^T)^{-1}$ by `solve._substitute` of every column of the identity at
+    once, as loops (`(n, n, W)`: row, column, lane)."""
+    n, W = inv.shape
+    row = lambda X, a: lax.dynamic_index_in_dim(X, a, 0, keepdims=False)
+    at = lambda a, b: lax.dynamic_index_in_dim(row(Lf, a), b, 0)  # (1, W)
+    eye = jnp.broadcast_to(jnp.eye(n, dtype=inv.dtype)[:, :, None], (n, n, W))
+
+    def forward(a, z):
+        s = lax.fori_loop(0, a, lambda b, s: s - at(a, b) * row(z, b), row(eye, a))
+        return lax.dynamic_update_slice_in_dim(
+            z, (s * lax.dynamic_index_in_dim(inv, a, 0))[None], a, 0
+        )
+
+    def backward(i, x):
+        a = n - 1 - i
+        s = lax.fori_loop(a + 1, n, lambda b, s: s - at(b, a) * row(x, b), row(x, a))
+        return lax.dynamic_update_slice_in_dim(
+            x, (s * lax.dynamic_index_in_dim(inv, a, 0))[None], a, 0
+        )
+
+    z = lax.fori_loop(0, n, forward, jnp.zeros_like(eye))
+    return lax.fori_loop(0, n, backward, z)
+
+
 def _factor(tape, Y, D, row, NM):
     """The inverse of one (padded) mass matrix at order 0, into the per-lane
-    coefficients of its combinations; its verdict into its slot."""
-    from .solve import _substitute, factor
-
+    coefficients of its combinations; its verdict (`solve.factor`'s) into its
+    slot."""
     W = Y.shape[1]
-    ent = _at(Y, tape.fac_m[row])  # (NM*NM, W)
-    M = [[ent[r * NM + c] for c in range(NM)] for r in range(NM)]
-    sign, Lf, inv, ok = factor(M, NM)
-    cols = []
-    for c in range(NM):
-        e = [jnp.full((W,), 1.0 if r == c else 0.0, Y.dtype) for r in range(NM)]
-        cols.append(_substitute(Lf, inv, e, NM))
+    M = _at(Y, tape.fac_m[row]).reshape(NM, NM, W)
+    one = jnp.ones_like(M[0, 0])
+    sign = jnp.where(M[0, 0] < 0, -one, one)
+    A = sign[None, None] * 0.5 * (M + M.transpose(1, 0, 2))
+    Lf, inv = _cholesky(A)
+    diag = Lf[jnp.arange(NM), jnp.arange(NM)]
+    d2 = diag * diag
+    eps = jnp.finfo(Y.dtype).eps
+    ok = jnp.all(jnp.isfinite(diag), 0) & (jnp.min(d2, 0) > NM * eps * jnp.max(d2, 0))
+    ok = ok & jnp.all(jnp.isfinite(M), (0, 1))
     # (factor works on sign * M, symmetrized: its inverse times sign is M's.)
-    Minv = jnp.stack([sign * cols[c][r] for r in range(NM) for c in range(NM)])
+    Minv = (sign[None, None] * _inverse(Lf, inv)).reshape(NM * NM, W)
     flat = D.reshape((-1, W)).at[tape.fac_dst[row]].set(Minv, mode="drop")
     Y = Y.at[tape.fac_ok[row]].set(ok.astype(Y.dtype))
     return Y, flat.reshape(D.shape)
