@@ -204,7 +204,7 @@ class CompactTape(eqx.Module):
     slots whose histories the Cauchy sums read (each row's $P$ and $Q$), `hcst`
     each row's constants $(c_0, c_1)$ and whether it weighs its plain and its
     weighted sum, `hslot` its node's slot; `hnode` the distinct slots of `hist`
-    (the operands whose histories a large tape keeps once each, `_operand_sums`)
+    (the operands whose histories the inner sums keep once each, `_operand_sums`)
     and `hidx` each row's $P$ and $Q$ as indices into `hnode`. `blocks`: the
     blocks in use at order 0 and above.
     """
