@@ -193,16 +193,25 @@ def test_equals_the_unrolled_program(shared, name):
     _close(got, _unrolled(systems[name], K, *point, n))
 
 
-@pytest.mark.parametrize("blocks", [dict(Gc=2, Gl=2, G0=4), dict(Gc=1, Gl=1, G0=1)])
+@pytest.mark.parametrize(
+    "blocks",
+    [
+        dict(Gc=2, Gl=2, G0=4),
+        dict(Gc=1, Gl=1, G0=1),
+        dict(Gc=2, Gl=2, G0=4, windows=True),
+    ],
+)
 def test_narrow_blocks_equal_the_unrolled_program(blocks):
     """Blocks of fewer nodes (`build`'s `size`): the inner sums and the histories
-    run over the rows in use in chunks of a Cauchy block's rows, several here."""
+    run over the rows in use in chunks of a Cauchy block's rows, several here (from
+    histories per operand, or per row a few orders a branch: `windows`)."""
     system = _system(double_pendulum, 2)
     prog = system.prog
     tape = compact.build(
         prog, prog.inputs, prog.params, prog.outs, jnp.float64, size=blocks
     )
     assert tape.cgat.shape[2] == blocks["Gc"] and tape.op0.shape[1] == blocks["G0"]
+    assert tape.windows == blocks.get("windows", False)
     assert int(tape.blocks[2]) > 2 * blocks["Gc"]
     point = _point(2, seed=4)
     _close(_compact(system, K, *point, tape=tape), _unrolled(system, K, *point, 2))

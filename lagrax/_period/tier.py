@@ -70,15 +70,16 @@ _RATE: dict = {}
 # (the pendulum, the cycloid, the asymmetric well, rectilinear motion).
 _FAMILIES = (compact.AFFINE, compact.RARE, compact.LOGIC, compact.SINCOS)
 # Narrow blocks (Gc, Gl, G0 nodes per block): a 1-DOF tape has one or two real
-# nodes where a block of 8 would pad them (`benchmarks/compact_steps.py`).
+# nodes where a block of 8 would pad them (`benchmarks/compact_steps.py`); inner
+# sums a few orders a branch (`windows`: a smaller program, faster to load).
 _SIZE = {
     "step": dict(
         families=_FAMILIES, S=128, NB0=64, H=32, U=32, NB=32, B1cau=16, B1slin=8,
-        B1dlin=16, B00=16, B01=32, B02=8, B03=2, Gc=2, Gl=2, G0=4,
+        B1dlin=16, B00=16, B01=32, B02=8, B03=2, Gc=2, Gl=2, G0=4, windows=True,
     ),
     "point": dict(
         families=_FAMILIES, S=256, NB0=64, H=64, U=64, NB=64, B1cau=32, B1slin=32,
-        B1dlin=32, B00=32, B01=32, B02=4, B03=2, Gc=2, Gl=2, G0=4,
+        B1dlin=32, B00=32, B01=32, B02=4, B03=2, Gc=2, Gl=2, G0=4, windows=True,
     ),
 }  # fmt: skip
 # Parameter inputs per tape: a multiple of this (the unused ones zero).

@@ -206,7 +206,9 @@ class CompactTape(eqx.Module):
     weighted sum, `hslot` its node's slot; `hnode` the distinct slots of `hist`
     (the operands whose histories the inner sums keep once each, `_operand_sums`)
     and `hidx` each row's $P$ and $Q$ as indices into `hnode`. `blocks`: the
-    blocks in use at order 0 and above.
+    blocks in use at order 0 and above. `windows`: the inner sums from a history
+    per row, a few orders a branch (`_windowed_sums`: a smaller program, whose
+    load counts where the work is small, as for the period tier's 1-DOF tapes).
     """
 
     values: jax.Array
@@ -239,6 +241,7 @@ class CompactTape(eqx.Module):
     hidx: jax.Array
     families: tuple = eqx.field(static=True)
     caps0: tuple = eqx.field(static=True)  # (order-0 blocks per family)
+    windows: bool = eqx.field(static=True, default=False)
 
     @property
     def size(self):
@@ -251,7 +254,11 @@ class CompactTape(eqx.Module):
                 "sgat", "dgat", "hist", "hnode", "seq1",
             )
         )  # fmt: skip
-        return shapes + (("families", self.families), ("caps0", self.caps0))
+        return shapes + (
+            ("families", self.families),
+            ("caps0", self.caps0),
+            ("windows", self.windows),
+        )
 
     def sizes(self) -> dict:
         """The smallest sizes (`build`'s `size`) that give another tape this one's
@@ -272,6 +279,7 @@ class CompactTape(eqx.Module):
             Gl=self.sgat.shape[2],
             G0=self.op0.shape[1],
             families=self.families,
+            windows=self.windows,
         )
         out.update({f"B0{f}": cap for f, cap in zip(self.families, self.caps0)})
         return out
@@ -927,6 +935,7 @@ def build(
         hidx=as_i(hidx),
         families=fams,
         caps0=tuple(B0[f] for f in fams),
+        windows=bool(minimum.get("windows", False)),
     )
     if traced:
         return tape, [prog.consts[i] for i in extra]
@@ -1300,7 +1309,7 @@ def _window_sums(p, q, plain_rows=slice(None), weighted_rows=slice(None)):
     return plain, weighted
 
 
-# Orders per window step of `_static_sums`.
+# Orders per window step of `_windowed_sums` and `_static_sums`.
 _SPAN = 4
 
 
@@ -1347,8 +1356,50 @@ def _windows(K):
 
 
 def _window_index(k):
-    """The window (a branch of `_static_sums`) whose span fits order $k$'s terms."""
+    """The window (a branch of `_windowed_sums`, `_static_sums`) whose span fits
+    order $k$'s terms."""
     return (jnp.maximum(k, 2) - 2) // _SPAN
+
+
+def _windowed_sums(K, C, chunks):
+    r"""`_operand_sums`' terms for the rows in use (`chunks` chunks of `C` rows),
+    from histories per row, `Hp` (`(K + _SPAN, H, W)`) and `R` (`(2K + _SPAN, H,
+    W)`) holding $Q_i$
+    at $K - i$, both zero where not yet computed: the window $R_{K-k+j} =
+    Q_{k-j}$ lines up with $P_j$ and the terms $j \ge k$ read zeros, so that one
+    branch serves every order whose terms fit its window, a multiple of `_SPAN`
+    orders (a few branches, not one per order: a smaller executable). Returns a
+    function of `(k, Hp, R, u0, u1)`: a loop over the chunks, each a switch on
+    the window (a branch a kernel, no loop of its own)."""
+
+    def branch(b):
+        span = (b + 1) * _SPAN
+
+        def fn(k, r, Hp, R, u0, u1):
+            W = Hp.shape[2]
+            inv = 1.0 / k.astype(Hp.dtype)
+            zero, one = jnp.zeros((), jnp.int32), jnp.ones((), jnp.int32)
+            p = lax.dynamic_slice(Hp, (one, r, zero), (span, C, W))
+            q = lax.dynamic_slice(R, (K - k + 1, r, zero), (span, C, W))
+            plain, weighted = _window_sums(p, q)
+            rows = lambda x: lax.dynamic_slice_in_dim(x, r, C)
+            return rows(u0) * plain + rows(u1) * (weighted * inv)
+
+        return fn
+
+    branches = [branch(b) for b in range(_windows(K))]
+
+    def sums(k, Hp, R, u0, u1):
+        index = _window_index(k)
+
+        def chunk(c, out):
+            r = (c * C).astype(jnp.int32)
+            value = lax.switch(index, branches, k, r, Hp, R, u0, u1)
+            return lax.dynamic_update_slice_in_dim(out, value, r, 0)
+
+        return lax.fori_loop(0, chunks, chunk, jnp.zeros_like(u0))
+
+    return sums
 
 
 def _row_form(tape, D, P0, Q0):
@@ -1445,26 +1496,53 @@ def compact_coefficients(
     Z = Z.at[:, 0].set(state[1:]).at[:, 1].set(_at(Y, tape.outs))
     rows = _bound(tape.blocks[2]) if rows is None else rows
     C = tape.cgat.shape[2]
-    sums = _operand_sums(K, C, (rows + C - 1) // C)
-    # The operands' histories, order first: each order read is written before.
-    Hu = jnp.zeros((K, tape.hnode.shape[0], W), dtype).at[0].set(_at(Y, tape.hnode))
+    chunks = (rows + C - 1) // C
+    zero = i32(0)
+    if tape.windows:
+        # Histories per row, Q's reversed, zero where not yet computed.
+        H = tape.hist.shape[1]
+        hist = (
+            jnp.zeros((K + _SPAN, H, W), dtype).at[0].set(P0),
+            jnp.zeros((2 * K + _SPAN, H, W), dtype).at[K].set(Q0),
+        )
+        windowed = _windowed_sums(K, C, chunks)
+        inner_of = lambda k, hist: windowed(k, *hist, u0, u1)
+
+        def store(k, Y, hist):
+            def put(c, hist):
+                Hp, R = hist
+                r = (c * C).astype(jnp.int32)
+                at = lax.dynamic_slice_in_dim(tape.hist, r, C, 1)
+                Hp = lax.dynamic_update_slice(Hp, _at(Y, at[0])[None], (k, r, zero))
+                R = lax.dynamic_update_slice(R, _at(Y, at[1])[None], (K - k, r, zero))
+                return Hp, R
+
+            return lax.fori_loop(0, chunks, put, hist)
+    else:
+        # The operands' histories, order first: each order read is written before.
+        U = tape.hnode.shape[0]
+        hist = jnp.zeros((K, U, W), dtype).at[0].set(_at(Y, tape.hnode))
+        sums = _operand_sums(K, C, chunks)
+        inner_of = lambda k, Hu: sums(k, Hu, tape.hidx, u0, u1)
+        store = lambda k, Y, Hu: lax.dynamic_update_slice(
+            Hu, _at(Y, tape.hnode)[None], (k, zero, zero)
+        )
 
     def order(k, carry):
-        Y, Hu, Z = carry
+        Y, hist, Z = carry
         k = k.astype(jnp.int32)
         t_k = jnp.where(k == 1, 1.0, 0.0).astype(dtype) * jnp.ones((1, W), dtype)
         y_k = lax.dynamic_index_in_dim(Z, k, 1, keepdims=False)
-        Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, y_k]), (first, i32(0)))
-        inner = sums(k, Hu, tape.hidx, u0, u1)
-        Y = _order_k(tape, Y, F, inner, D, blocks)
-        Hu = lax.dynamic_update_slice(Hu, _at(Y, tape.hnode)[None], (k, i32(0), i32(0)))
+        Y = lax.dynamic_update_slice(Y, jnp.concatenate([t_k, y_k]), (first, zero))
+        Y = _order_k(tape, Y, F, inner_of(k, hist), D, blocks)
+        hist = store(k, Y, hist)
         f = _at(Y, tape.outs) / (k + 1).astype(dtype)
-        Z = lax.dynamic_update_slice(Z, f[:, None], (i32(0), k + 1, i32(0)))
-        return Y, Hu, Z
+        Z = lax.dynamic_update_slice(Z, f[:, None], (zero, k + 1, zero))
+        return Y, hist, Z
 
     # (Every slot a block writes is written at every order before it is read;
     # the others, constants and parameters, are zero above order 0.)
-    carry = (jnp.zeros_like(Y), Hu, Z)
+    carry = (jnp.zeros_like(Y), hist, Z)
     if K > 1:  # (K = 1: the acceleration alone, no order to recur)
         Z = lax.fori_loop(1, K, order, carry)[2]
     return [[Z[i, k] for k in range(K + 1)] for i in range(m - 1)]
