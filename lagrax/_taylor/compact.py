@@ -1633,14 +1633,9 @@ def _rows_by_sum(tape):
 
 
 def _static_sums(K, u0, u1, p, w):
-    r"""Every row's Cauchy terms strictly inside the sum (`_operand_sums`) over
-    every row in use at once, for rows sorted by `_rows_by_sum`, each sum over the
-    rows that weigh it only: from `Hp` (`(K + _SPAN, rows, W)`) and `R` (`(2K +
-    _SPAN, rows, W)`) holding $Q_i$ at $K - i$, both zero where not yet computed,
-    so that the window $R_{K-k+j} = Q_{k-j}$ lines up with $P_j$ and the terms $j
-    \ge k$ read zeros: one branch serves every order whose terms fit its window,
-    a multiple of `_SPAN` orders. Returns `index(k)` and the branches, functions
-    of `(k, Hp, R)`."""
+    r"""`_windowed_sums` over every row in use at once, for rows sorted by
+    `_rows_by_sum`: each sum over the rows that weigh it only. Returns `index(k)`
+    and the branches, functions of `(k, Hp, R)`."""
 
     def branch(b):
         span = (b + 1) * _SPAN
@@ -1703,7 +1698,7 @@ def inline_coefficients(tape: CompactTape, K: int, t, ys, params, trig=False):
     hist = np.asarray(static.hist)[:, rows]
     A = _run_form(node, F, D)
     index, sums = _static_sums(K, u0, u1, p, w)
-    # Histories, zero where not yet computed; Q's reversed (`_static_sums`).
+    # Histories, zero where not yet computed; Q's reversed (`_windowed_sums`).
     Hp = jnp.zeros((K + _SPAN, rows.shape[0], W), dtype).at[0].set(P0)
     R = jnp.zeros((2 * K + _SPAN, rows.shape[0], W), dtype).at[K].set(Q0)
     Z = jnp.zeros((m - 1, K + 1, W), dtype)
