@@ -66,18 +66,25 @@ def one_thread_environment() -> dict:
 # hoisting"), which runs the compact tiers' programs of many short loops faster and
 # the specialized unrolled ones slower (benchmarks/README.md). No compile option
 # reaches a backend option (a map that `compiler_options` cannot set): only the
-# `XLA_FLAGS` of a process started for the program.
+# `XLA_FLAGS` of a process started for the program. The same map passes options to
+# LLVM: no loop unrolling, so that XLA's gathers of rows of few lanes (a compact
+# program's operands, 32 lanes) compile to vector loops, not to scalar code unrolled
+# lane by lane (3.4x faster a block at 32 lanes; the same at 128).
 _WHOLE_LOOPS = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
+_NO_UNROLL = ",-unroll-threshold=0"
 
 
 def whole_loop_environment(env: dict, loop_bytes: int) -> dict:
     """`env` (a new process's environment) with `XLA_FLAGS` asking XLA's CPU compiler
     to compile each while loop of a program whose iteration reads and writes fewer
-    than `loop_bytes` bytes as one function (after any flags `env` holds). Where a
-    later XLA drops the option, its programs compile as in any other process: only
-    slower, as before."""
+    than `loop_bytes` bytes as one function, and LLVM not to unroll loops (after any
+    flags `env` holds). Where a later XLA drops the first option, its programs
+    compile as in any other process: only slower, as before; where LLVM refuses the
+    second, the process fails and the program compiles in the caller's
+    (`lagrax._cache.apart`)."""
     flags = env.get("XLA_FLAGS", "")
-    return {**env, "XLA_FLAGS": f"{flags} {_WHOLE_LOOPS}{int(loop_bytes)}".strip()}
+    whole = f"{_WHOLE_LOOPS}{int(loop_bytes)}{_NO_UNROLL}"
+    return {**env, "XLA_FLAGS": f"{flags} {whole}".strip()}
 
 
 def splits_loops() -> bool:

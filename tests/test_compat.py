@@ -279,7 +279,8 @@ def test_whole_loop_environment_compiles_a_loop_as_one_function():
     (800 kB an iteration, over XLA's default threshold) as one function; without,
     it does not. If the first fails, XLA no longer reads the option (the compact
     programs `lagrax._cache.apart` compiles run op by op again: slower, not wrong);
-    the user's own flags are kept."""
+    if the process fails, LLVM refuses the option not to unroll loops (those
+    programs then compile in the caller's process); the user's own flags are kept."""
     counts = {}
     for name in ("whole", "plain"):
         env = {**os.environ, "XLA_FLAGS": "--xla_cpu_enable_fast_math=false"}

@@ -748,10 +748,11 @@ def _tiered(call, origin, n, dtype):
     if rents and later != "running" and _SPENT[cfg] >= estimate:
         _notify(cfg, estimate)
         return specialized()
-    # (At most 128 lanes on the compact program: a lane group's histories, which
-    # its Cauchy sums read at every order, then stay nearer the core; a release's
-    # result does not depend on the lanes.)
-    lanes = min(cfg.width, 128)
+    # (At most 32 lanes on the compact program: a lane group's histories, which its
+    # Cauchy sums read at every order, then stay in the core's L2 cache, and its
+    # gathers are vector loops where LLVM does not unroll them (`_compat.
+    # whole_loop_environment`); a release's result does not depend on the lanes.)
+    lanes = min(cfg.width, _COMPACT_LANES)
     compact_cfg = dataclasses.replace(
         cfg, L=None, force=None, compact=True, width=lanes
     )
@@ -874,6 +875,9 @@ def _step_nodes(L_c, consts, force, n, dtype) -> int:
     return _kept(_STEP_NODES, key, make)
 
 
+# The compact program's lane width (`_tiered`): chain4, 256 releases, 1e-12, 128 /
+# 64 / 32 / 16 lanes: 0.58 / 0.45 / 0.38 / 0.37 s (benchmarks/README.md).
+_COMPACT_LANES = 32
 # Every compact program holds these families at order 0 (so that most Lagrangians
 # of a size share it) and these smallest sizes.
 _SIZE_CLASS = dict(families=(compact.AFFINE, compact.RARE, compact.LOGIC,
